@@ -1,0 +1,100 @@
+"""The linear-blend-skinning subspace of Eq. (5)-(6), applied implicitly.
+
+With ``m`` modes the coefficients are ``m`` affine blocks ``T_j (3, 4)`` stored as an array
+``T (m, 3, 4)``, and the deformed vertices are (Eq. 6)
+
+    x_i = x0_i + sum_j W[i, j] * T_j @ [x0_i, 1]
+
+which is ``x = B z + x0`` with the ``3n x 12m`` matrix ``B`` of Eq. (5), without building
+``B``. The paper's vector ``z`` (Eq. 5's column order: mode, homogeneous coordinate,
+dimension) is ``T.transpose(0, 2, 1).reshape(-1)``; see :func:`to_paper_z`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+__all__ = ["LBSBasis", "to_paper_z", "from_paper_z"]
+
+
+def to_paper_z(T: np.ndarray) -> np.ndarray:
+    """Blocks ``T (m, 3, 4)`` to the paper's coefficient vector ``z (12m,)`` (Eq. 5-6)."""
+    return np.ascontiguousarray(np.asarray(T).transpose(0, 2, 1)).reshape(-1)
+
+
+def from_paper_z(z: np.ndarray) -> np.ndarray:
+    """The paper's ``z (12m,)`` to blocks ``T (m, 3, 4)``."""
+    z = np.asarray(z, dtype=np.float64)
+    return np.ascontiguousarray(z.reshape(-1, 4, 3).transpose(0, 2, 1))
+
+
+class LBSBasis:
+    """Skinning subspace of a rest mesh: ``x = x0 + B z`` applied without building ``B``.
+
+    Parameters
+    ----------
+    X0 : (n, 3) float
+        Rest vertex positions.
+    W : (n, m_max) float
+        Skinning weights (columns are modes).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> X0 = np.random.default_rng(0).random((10, 3)); W = np.ones((10, 1))
+    >>> T = np.zeros((1, 3, 4)); T[0, :, 3] = [1, 0, 0]     # translate by +x
+    >>> bool(np.allclose(LBSBasis(X0, W).deform(T), X0 + [1, 0, 0]))
+    True
+    """
+
+    def __init__(self, X0: np.ndarray, W: np.ndarray):
+        self.X0 = np.array(X0, dtype=np.float64, copy=True)
+        self.W = np.array(W, dtype=np.float64, copy=True)
+        if self.W.ndim != 2 or self.W.shape[0] != self.X0.shape[0]:
+            raise ValueError(f"W must have shape ({self.X0.shape[0]}, m), got {self.W.shape}")
+        self.Xh = np.hstack([self.X0, np.ones((self.X0.shape[0], 1))])  # [X0 1], (n, 4)
+        self._gram: np.ndarray | None = None
+
+    @property
+    def max_modes(self) -> int:
+        return self.W.shape[1]
+
+    def displacement(self, T: np.ndarray) -> np.ndarray:
+        """``B z`` as an ``(n, 3)`` array, for blocks ``T (m, 3, 4)`` with ``m <= m_max``."""
+        m = T.shape[0]
+        Wm = self.W[:, :m]
+        out = np.zeros_like(self.X0)
+        for k in range(4):  # four (n, m) @ (m, 3) products, no (n, 4m) intermediate
+            out += self.Xh[:, k : k + 1] * (Wm @ T[:, :, k])
+        return out
+
+    def deform(self, T: np.ndarray) -> np.ndarray:
+        """Deformed vertices ``x0 + B z`` (Eq. 6), ``(n, 3)``."""
+        return self.X0 + self.displacement(T)
+
+    def pullback(self, G: np.ndarray, m: int) -> np.ndarray:
+        """``B^T g`` for a per-vertex gradient ``G (n, 3)``: the gradient with respect to the
+        first ``m`` blocks, ``(m, 3, 4)``, ``dE/dT_j = G^T diag(w_j) [X0 1]``."""
+        Wm = self.W[:, :m]
+        out = np.empty((m, 3, 4))
+        for k in range(4):
+            out[:, :, k] = Wm.T @ (G * self.Xh[:, k : k + 1])
+        return out
+
+    def gram_blocks(self, m: int) -> np.ndarray:
+        """Per-mode Gram matrices ``[X0 1]^T diag(w_j)^2 [X0 1]``, ``(m, 4, 4)``.
+
+        ``B_j^T B_j = Gram_j kron I3`` for the 12 columns of mode ``j``; used to precondition
+        the gradient step so that translation and linear parts move vertices alike.
+        """
+        if self._gram is None or self._gram.shape[0] < m:
+            W2 = self.W**2
+            self._gram = np.einsum("nj,nk,nl->jkl", W2, self.Xh, self.Xh, optimize=True)
+        return self._gram[:m]
+
+    def matrix(self, m: int) -> sp.csr_matrix:
+        """The explicit ``3n x 12m`` matrix ``B`` of Eq. (5) (tests and small meshes only)."""
+        n = self.X0.shape[0]
+        A = (self.W[:, :m, None] * self.Xh[:, None, :]).reshape(n, 4 * m)
+        return sp.kron(sp.csr_matrix(A), sp.identity(3), format="csr")

@@ -1,0 +1,25 @@
+"""Exception types raised by morphmodes-vol.
+
+Every error caused by user input is a subclass of :class:`ValueError`, so callers can catch
+``ValueError`` without knowing this module.
+"""
+
+from __future__ import annotations
+
+__all__ = ["MorphModesError", "MeshValidationError", "MeshLoadError", "OptionError"]
+
+
+class MorphModesError(ValueError):
+    """Base class of every input error raised by morphmodes-vol."""
+
+
+class MeshValidationError(MorphModesError):
+    """A mesh (vertices, faces) fails validation: wrong shape, non-finite values, bad indices."""
+
+
+class MeshLoadError(MorphModesError):
+    """A mesh file cannot be read: missing, empty, unsupported format or not a triangle mesh."""
+
+
+class OptionError(MorphModesError):
+    """An option has an invalid value (out of range, unknown literal)."""

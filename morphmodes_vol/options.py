@@ -1,0 +1,148 @@
+"""Every tunable of a registration, as frozen dataclasses with named fields.
+
+Units: all lengths are in the *normalized* frame, in which the union bounding box of source
+and target has a diagonal of 1 (see :mod:`morphmodes_vol.mesh`). A length of ``0.01`` is
+therefore 1% of the size of the scene, whatever the units of the input files.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Literal
+
+from .errors import OptionError
+
+__all__ = ["RegistrationOptions", "Preconditioner"]
+
+Preconditioner = Literal["block", "none"]
+_PRECONDITIONERS = ("block", "none")
+
+
+@dataclass(frozen=True)
+class RegistrationOptions:
+    """Options of :func:`morphmodes_vol.register`.
+
+    Attributes
+    ----------
+    grid : int
+        Number of quadrature points along the longest side of the padded box (Eq. 3); the
+        other sides get the same spacing. ``64`` gives about 67k points on the lion.
+    target_grid : int or None
+        Nodes of the dense target-SDF grid along the longest side; ``None`` uses ``grid``.
+    padding : float
+        Margin added on every side of the union bounding box, as a fraction of its diagonal.
+    modes : int
+        ``m_max``, the largest number of skinning eigenmodes (12 degrees of freedom each).
+    stall_start, stall_end : float
+        Stall threshold ``eps_stall`` of Algorithm 1 for the first and the last stage; stages
+        in between decay geometrically. Measured as the root-mean-square vertex motion of
+        one iteration in normalized units, so the schedule does not depend on the vertex
+        count (the paper's 1e-1 to 1e-3 on the 2-norm of all 3n coordinates correspond to
+        about 1.4e-3 to 1.4e-5 RMS on its 5000-vertex lion).
+    max_iterations_per_stage : int
+        Cap on the gradient steps of one stage before the next mode is added anyway.
+    max_iterations : int
+        Cap on the gradient steps of the whole run.
+    max_step : float
+        RMS vertex motion (normalized units) of the first trial step of each stage, and the
+        most any trial step may move the vertices. Later iterations start their line search
+        from the previous accepted step (doubled when it needed no backtracking).
+    armijo : float
+        Sufficient-decrease constant ``c`` of the backtracking line search.
+    backtrack : float
+        Step shrink factor of the backtracking line search, in (0, 1).
+    max_backtracks : int
+        Trial steps of one line search before the stage is declared stalled.
+    preconditioner : {"block", "none"}
+        ``"block"`` (default) scales each mode's 3x4 block of the gradient by the inverse of
+        its 4x4 Gram matrix ``[X0 1]^T diag(w_j)^2 [X0 1]`` (our one deviation from the
+        paper's plain gradient step, see docs/method.md); ``"none"`` is the paper's step.
+    occupancy_samples : int
+        Rays cast (odd; majority vote) to decide inside/outside of the source at each
+        quadrature point.
+    seed : int
+        Seed of the only random choice (the start vector of the sparse eigensolver).
+    """
+
+    grid: int = 64
+    target_grid: int | None = None
+    padding: float = 0.1
+    modes: int = 20
+    stall_start: float = 1.4e-3
+    stall_end: float = 1.4e-5
+    max_iterations_per_stage: int = 60
+    max_iterations: int = 1500
+    max_step: float = 2e-2
+    armijo: float = 1e-4
+    backtrack: float = 0.5
+    max_backtracks: int = 12
+    preconditioner: Preconditioner = "block"
+    occupancy_samples: int = 1
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        def need(cond: bool, name: str, what: str) -> None:
+            if not cond:
+                raise OptionError(
+                    f"option {name}={getattr(self, name)!r} is invalid: expected {what}"
+                )
+
+        need(_is_int(self.grid) and 4 <= self.grid <= 1024, "grid", "an integer in [4, 1024]")
+        need(
+            self.target_grid is None or (_is_int(self.target_grid) and 4 <= self.target_grid <= 1024),
+            "target_grid",
+            "None or an integer in [4, 1024]",
+        )
+        need(0.0 <= self.padding <= 2.0, "padding", "a float in [0, 2]")
+        need(_is_int(self.modes) and 1 <= self.modes <= 500, "modes", "an integer in [1, 500]")
+        need(self.stall_start > 0, "stall_start", "a positive float")
+        need(0 < self.stall_end <= self.stall_start, "stall_end", "a float in (0, stall_start]")
+        need(_is_int(self.max_iterations_per_stage) and self.max_iterations_per_stage >= 1,
+             "max_iterations_per_stage", "a positive integer")
+        need(_is_int(self.max_iterations) and self.max_iterations >= 1, "max_iterations",
+             "a positive integer")
+        need(self.max_step > 0, "max_step", "a positive float")
+        need(0 < self.armijo < 1, "armijo", "a float in (0, 1)")
+        need(0 < self.backtrack < 1, "backtrack", "a float in (0, 1)")
+        need(_is_int(self.max_backtracks) and self.max_backtracks >= 1, "max_backtracks",
+             "a positive integer")
+        need(self.preconditioner in _PRECONDITIONERS, "preconditioner",
+             f"one of {_PRECONDITIONERS}")
+        need(_is_int(self.occupancy_samples) and self.occupancy_samples >= 1
+             and self.occupancy_samples % 2 == 1, "occupancy_samples", "a positive odd integer")
+        need(_is_int(self.seed) and self.seed >= 0, "seed", "a non-negative integer")
+
+    @property
+    def resolved_target_grid(self) -> int:
+        """Target-grid resolution, ``grid`` when ``target_grid`` is ``None``."""
+        return self.grid if self.target_grid is None else self.target_grid
+
+    def stall_threshold(self, stage: int) -> float:
+        """``eps_stall`` of Algorithm 1 for stage ``stage`` (0-based: stage s has s+1 modes).
+
+        Decays geometrically from ``stall_start`` (first stage) to ``stall_end`` (stage
+        ``modes - 1``).
+        """
+        if self.modes == 1:
+            return self.stall_start
+        t = min(max(stage, 0), self.modes - 1) / (self.modes - 1)
+        return self.stall_start * (self.stall_end / self.stall_start) ** t
+
+    def replace(self, **changes) -> "RegistrationOptions":
+        """Copy with some fields changed (validated again)."""
+        unknown = set(changes) - {f.name for f in dataclasses.fields(self)}
+        if unknown:
+            raise OptionError(
+                f"unknown option(s) {sorted(unknown)}; valid options are "
+                f"{[f.name for f in dataclasses.fields(self)]}"
+            )
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict:
+        """Plain dictionary of the fields (for reports)."""
+        return dataclasses.asdict(self)
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)

@@ -1,0 +1,19 @@
+"""Signed distance fields: regular grids and trilinear sampling, the target SDF (built once),
+and the source SDF (Open3D queries on the deformed source at every evaluation)."""
+
+from .closest_point import closest_point_barycentrics
+from .grid import Grid, trilinear_sample
+from .source import ClosestPoints, SignedDistanceQuery, closest_points, inside, signed_distance
+from .target import DenseTargetSDF
+
+__all__ = [
+    "Grid",
+    "trilinear_sample",
+    "closest_point_barycentrics",
+    "ClosestPoints",
+    "SignedDistanceQuery",
+    "closest_points",
+    "inside",
+    "signed_distance",
+    "DenseTargetSDF",
+]

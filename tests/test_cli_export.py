@@ -1,0 +1,86 @@
+"""The command line and the output folder, end to end on generated meshes."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import trimesh
+
+from morphmodes_vol.cli import main
+from morphmodes_vol.export import atomic_write_bytes
+from morphmodes_vol.primitives import capsule
+
+
+@pytest.fixture
+def pair(tmp_path):
+    V, F = capsule(height=1.0, radius=0.25, count=(10, 10))
+    V = V * [1.0, 0.6, 1.0]
+    target = V * [1.1, 1.0, 1.05] + [0.03, 0, 0]
+    src, tgt = tmp_path / "src.obj", tmp_path / "tgt.off"
+    trimesh.Trimesh(V, F, process=False).export(src)
+    trimesh.Trimesh(target, F, process=False).export(tgt)
+    return src, tgt, V, F, target
+
+
+def test_register_writes_complete_outputs(pair, tmp_path, capsys):
+    src, tgt, V, F, target = pair
+    out = tmp_path / "out"
+    code = main(["register", str(src), str(tgt), "-o", str(out), "--grid", "16", "--modes", "3",
+                 "--ground-truth", str(tgt), "--quiet"])
+    assert code == 0
+    names = sorted(p.name for p in out.iterdir())
+    assert names == ["correspondence.npz", "registered.obj", "report.json", "state.npz"]
+    reg = trimesh.load(out / "registered.obj", process=False, force="mesh")
+    assert len(reg.vertices) == len(V)
+    np.testing.assert_array_equal(reg.faces, F)
+    report = json.loads((out / "report.json").read_text())
+    assert report["options"]["grid"] == 16 and report["modes"] == 3
+    assert report["metrics"]["ground_truth_error"] < report["metrics"]["identity_error"]
+    assert {"preprocess", "target_sdf", "eigenbasis", "optimize"} <= set(report["timings"])
+    assert report["versions"]["open3d"] != "not installed"
+    assert report["history"]["evaluations"] == report["evaluations"] > 0
+    state = np.load(out / "state.npz")
+    assert state["W"].shape == (len(V), 3) and state["T"].shape == (3, 3, 4)
+    assert state["z"].shape == (36,)
+    corr = np.load(out / "correspondence.npz")
+    assert corr["faces"].shape == (len(V),) and corr["barycentrics"].shape == (len(V), 3)
+    np.testing.assert_allclose(corr["barycentrics"].sum(1), 1.0, atol=1e-9)
+    assert "ground-truth error" in capsys.readouterr().out
+    assert not [p for p in out.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_bad_input_gives_one_line_and_exit_code_2(tmp_path, pair):
+    src = pair[0]
+    bad = tmp_path / "bad.obj"
+    bad.write_text("")
+    proc = subprocess.run(
+        [sys.executable, "-m", "morphmodes_vol", "register", str(src), str(bad), "-o", str(tmp_path / "o")],
+        capture_output=True, text=True,
+    )
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "bad.obj" in lines[0] and "empty" in lines[0]
+    assert not (tmp_path / "o" / "report.json").exists()
+
+
+def test_progress_is_shown_unless_quiet(pair, tmp_path, capsys):
+    src, tgt = pair[0], pair[1]
+    main(["register", str(src), str(tgt), "-o", str(tmp_path / "a"), "--grid", "12", "--modes", "2"])
+    assert "modes 1/2" in capsys.readouterr().err
+    main(["register", str(src), str(tgt), "-o", str(tmp_path / "b"), "--grid", "12", "--modes", "2", "-q"])
+    assert capsys.readouterr().err == ""
+
+
+def test_atomic_write_leaves_old_file_on_failure(tmp_path):
+    path = tmp_path / "f.txt"
+    atomic_write_bytes(path, b"old")
+
+    class Boom(bytes):
+        pass
+
+    with pytest.raises(TypeError):
+        atomic_write_bytes(path, object())  # not bytes: fails while writing
+    assert path.read_bytes() == b"old"
+    assert [p.name for p in tmp_path.iterdir()] == ["f.txt"]
