@@ -37,10 +37,10 @@ class ProgressPrinter:
         now = time.perf_counter()
         new_stage = e.modes != self._modes
         self._modes = e.modes
+        step = "-" if e.step_rms != e.step_rms else f"{e.step_rms:.1e}"  # NaN at a stage start
         line = (
             f"modes {e.modes}/{e.max_modes}  iter {e.iteration}  energy {e.energy:.4e}  "
-            f"step {e.step_rms:.1e} (stall {e.threshold:.1e})  evals {e.evaluations}  "
-            f"{e.elapsed:.1f}s"
+            f"step {step} (stall {e.threshold:.1e})  evals {e.evaluations}  {e.elapsed:.1f}s"
         )
         if self.tty:
             pad = max(self._width - len(line), 0)

@@ -84,3 +84,14 @@ def test_atomic_write_leaves_old_file_on_failure(tmp_path):
         atomic_write_bytes(path, object())  # not bytes: fails while writing
     assert path.read_bytes() == b"old"
     assert [p.name for p in tmp_path.iterdir()] == ["f.txt"]
+
+
+def test_demo_runs_without_shared_data(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "-o", str(out), "--grid", "16", "--modes", "3", "-q"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    m = report["metrics"]
+    assert m["ground_truth_error"] < m["identity_error"]
+    assert (out / "source.ply").exists() and (out / "target.ply").exists()
+    printed = capsys.readouterr().out
+    assert str(out) in printed and "ground-truth error" in printed

@@ -226,8 +226,8 @@ def optimize_adaptive(
             if step_rms < eps:
                 end = "stalled"
                 break
-            # warm start: the next line search starts from twice the accepted step
-            alpha = ls.step / options.backtrack
+            # warm start: try a longer step next time if this one needed no backtracking
+            alpha = ls.step / options.backtrack if ls.trials == 1 else ls.step
         history.stage_ends.append(end)
         log.info(
             "stage %d/%d ended (%s) after %d steps, energy %.6g, %d evaluations",
