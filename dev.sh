@@ -31,7 +31,8 @@ setup() {
   "$PY" -c 'import sys; sys.exit(sys.version_info < (3, 10))' \
     || die "Python 3.10 or newer is needed, found $("$PY" --version 2>&1)"
   # Open3D's wheel links libusb-1.0 (it fails to import without it).
-  if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1\.0\.so\.0'; then
+  # (ldconfig lives in /sbin, which is not on a normal user's PATH on Debian)
+  if ! { /sbin/ldconfig -p 2>/dev/null || ldconfig -p 2>/dev/null; } | grep -q 'libusb-1\.0\.so\.0'; then
     need_apt libusb-1.0-0
   fi
   if [ ! -x "$VENV/bin/python" ]; then

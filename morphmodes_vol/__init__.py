@@ -8,6 +8,7 @@ Quick use::
     result.vertices          # (n, 3) registered source vertices, original frame and order
 """
 
+from .export import write_outputs
 from .errors import MeshLoadError, MeshValidationError, MorphModesError, OptionError
 from .mesh import as_mesh, load_mesh, validate_mesh
 from .options import RegistrationOptions
@@ -21,6 +22,7 @@ __all__ = [
     "RegistrationResult",
     "RegistrationOptions",
     "ground_truth_error",
+    "write_outputs",
     "load_mesh",
     "validate_mesh",
     "as_mesh",

@@ -36,6 +36,9 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
             fh.write(data)
             fh.flush()
             os.fsync(fh.fileno())
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the usual permissions
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -102,6 +105,8 @@ def write_outputs(result, outdir: str | os.PathLike, inputs: dict | None = None,
     """
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
+    # an old report next to new files would mark a half-rewritten folder as complete
+    (outdir / "report.json").unlink(missing_ok=True)
     paths = {
         "mesh": outdir / f"registered.{mesh_format}",
         "state": outdir / "state.npz",
@@ -123,6 +128,9 @@ def write_outputs(result, outdir: str | os.PathLike, inputs: dict | None = None,
             step_rms=np.asarray(h.step_rms),
             modes=np.asarray(h.modes, dtype=np.int64),
             stage_starts=np.asarray(h.stage_starts, dtype=np.int64),
+            stage_ends=np.asarray(h.stage_ends, dtype=str),
+            stage_seconds=np.asarray(h.stage_seconds),
+            evaluations=np.int64(h.evaluations),
         ),
     )
     atomic_write_bytes(

@@ -14,7 +14,7 @@ from typing import Callable
 
 import numpy as np
 
-from .eigenbasis import LBSBasis, skinning_eigenmodes, to_paper_z
+from .eigenbasis import LBSBasis, mesh_skinning_weights, to_paper_z
 from .energy import SDFEnergy
 from .errors import MeshValidationError, OptionError
 from .mesh import MeshLike, Normalization, as_mesh, bbox_diagonal, joint_normalization
@@ -25,6 +25,13 @@ from .sdf import DenseTargetSDF, Grid, closest_points
 __all__ = ["register", "Registration", "RegistrationResult", "ground_truth_error"]
 
 log = logging.getLogger(__name__)
+
+
+def _is_closed(F: np.ndarray) -> bool:
+    """Every undirected edge is shared by exactly two triangles."""
+    edges = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    return bool(np.all(counts == 2))
 
 
 def ground_truth_error(registered: np.ndarray, truth: np.ndarray) -> float:
@@ -138,6 +145,12 @@ class Registration:
                 f"modes={self.options.modes} exceeds the source's "
                 f"{self.source_vertices.shape[0]} vertices"
             )
+        if self.options.source_sign == "raycast" and not _is_closed(self.source_faces):
+            log.warning(
+                "the source mesh is not closed (some edge is not shared by exactly two "
+                "triangles): ray-parity signs may be wrong behind its holes; consider "
+                "source_sign='winding'"
+            )
         self.normalization = joint_normalization(self.source_vertices, self.target_vertices)
         self.X0 = self.normalization.apply(self.source_vertices)
         self.Y = self.normalization.apply(self.target_vertices)
@@ -157,7 +170,7 @@ class Registration:
                  self.target_grid.shape, self.Q.shape[0], self.timings["target_sdf"])
 
         t = time.perf_counter()
-        self.weights, self.eigenvalues = skinning_eigenmodes(
+        self.weights, self.eigenvalues = mesh_skinning_weights(
             self.X0, self.source_faces, self.options.modes, seed=self.options.seed
         )
         self.basis = LBSBasis(self.X0, self.weights)
@@ -171,7 +184,7 @@ class Registration:
             self.Q,
             self.g,
             self.quadrature.cell_volume,
-            sign="raycast",
+            sign=self.options.source_sign,
             samples=self.options.occupancy_samples,
         )
 
@@ -200,7 +213,9 @@ class Registration:
         vertices = self.normalization.undo(out.vertices)
 
         t = time.perf_counter()
-        cp = closest_points(self.target_vertices, self.target_faces, vertices)
+        # in the normalized frame (Open3D searches in float32); barycentrics and face ids
+        # are invariant under the similarity, distances scale by 1 / normalization.scale
+        cp = closest_points(self.Y, self.target_faces, out.vertices)
         timings["correspondence"] = time.perf_counter() - t
 
         metrics = {
@@ -209,8 +224,14 @@ class Registration:
             "initial_sdf_rms": out.initial.rms_residual,
             "final_sdf_rms": out.final.rms_residual,
             "sdf_rms_units": "fraction of the union bounding-box diagonal",
-            "mean_distance_to_target": float(cp.distance.mean() / bbox_diagonal(self.target_vertices)),
+            "mean_distance_to_target": float(cp.distance.mean() / bbox_diagonal(self.Y)),
         }
+        if metrics["final_sdf_rms"] > 0.5 * metrics["initial_sdf_rms"]:
+            log.warning(
+                "the SDF residual fell only from %.3g to %.3g: the registration may have "
+                "failed (source and target far apart or very differently oriented?)",
+                metrics["initial_sdf_rms"], metrics["final_sdf_rms"],
+            )
         if ground_truth is not None:
             truth = ground_truth if isinstance(ground_truth, np.ndarray) else as_mesh(ground_truth, "ground truth")[0]
             metrics["identity_error"] = ground_truth_error(self.source_vertices, truth)

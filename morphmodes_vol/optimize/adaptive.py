@@ -23,6 +23,7 @@ import numpy as np
 
 from ..eigenbasis.lbs import LBSBasis
 from ..energy import EnergyEvaluation, SDFEnergy
+from ..errors import OptionError
 from ..options import RegistrationOptions
 from .linesearch import armijo_backtracking
 
@@ -66,6 +67,10 @@ class OptimizationHistory:
     stage_ends : list of str
         Why each stage ended: ``stalled``, ``line_search``, ``iteration_cap``,
         ``max_iterations``.
+    stage_seconds : list of float
+        Wall time of each stage.
+    stage_evaluations : list of int
+        Source-SDF evaluations spent in each stage.
     evaluations : int
         Number of full source-SDF evaluations.
     """
@@ -75,6 +80,8 @@ class OptimizationHistory:
     modes: list = field(default_factory=list)
     stage_starts: list = field(default_factory=list)
     stage_ends: list = field(default_factory=list)
+    stage_seconds: list = field(default_factory=list)
+    stage_evaluations: list = field(default_factory=list)
     evaluations: int = 0
 
     def to_dict(self) -> dict:
@@ -84,6 +91,8 @@ class OptimizationHistory:
             "modes": [int(m) for m in self.modes],
             "stage_starts": [int(s) for s in self.stage_starts],
             "stage_ends": list(self.stage_ends),
+            "stage_seconds": [float(t) for t in self.stage_seconds],
+            "stage_evaluations": [int(k) for k in self.stage_evaluations],
             "evaluations": int(self.evaluations),
         }
 
@@ -101,6 +110,9 @@ class AdaptiveResult:
     final : EnergyEvaluation
     history : OptimizationHistory
     status : {"converged", "stage_cap", "max_iterations"}
+        ``converged``: every stage ended by the stall test or a line search that found no
+        decrease; ``stage_cap``: at least one stage was cut by ``max_iterations_per_stage``;
+        ``max_iterations``: the run was cut by ``max_iterations`` before ``m_max`` modes.
     """
 
     T: np.ndarray
@@ -115,6 +127,8 @@ def _precondition(grad: np.ndarray, basis: LBSBasis, kind: str) -> np.ndarray:
     """Search direction from the gradient blocks ``(m, 3, 4)``."""
     if kind == "none":
         return -grad
+    if kind != "block":
+        raise OptionError(f"preconditioner={kind!r}: expected one of ('block', 'none')")
     gram = basis.gram_blocks(grad.shape[0])
     # Tikhonov on each 4x4 block, relative to its trace, guards planar/degenerate supports.
     reg = 1e-9 * np.trace(gram, axis1=1, axis2=2)[:, None, None] * np.eye(4)
@@ -174,7 +188,11 @@ def optimize_adaptive(
             )
 
     for stage in range(m_max):
+        if iteration >= options.max_iterations:
+            status = "max_iterations"
+            break
         m = stage + 1
+        stage_t0, stage_evals = time.perf_counter(), energy.evaluations
         T = np.concatenate([T, np.zeros((1, 3, 4))])  # z <- [z; 0_12]
         eps = options.stall_threshold(stage)
         history.stage_starts.append(len(history.step_rms))
@@ -229,6 +247,8 @@ def optimize_adaptive(
             # warm start: try a longer step next time if this one needed no backtracking
             alpha = ls.step / options.backtrack if ls.trials == 1 else ls.step
         history.stage_ends.append(end)
+        history.stage_seconds.append(time.perf_counter() - stage_t0)
+        history.stage_evaluations.append(energy.evaluations - stage_evals)
         log.info(
             "stage %d/%d ended (%s) after %d steps, energy %.6g, %d evaluations",
             m, m_max, end, len(history.step_rms) - history.stage_starts[-1],
@@ -238,7 +258,7 @@ def optimize_adaptive(
             status = "max_iterations"
             break
     else:
-        status = "stage_cap" if history.stage_ends[-1] == "iteration_cap" else "converged"
+        status = "stage_cap" if "iteration_cap" in history.stage_ends else "converged"
 
     history.evaluations = energy.evaluations
     return AdaptiveResult(

@@ -1,0 +1,104 @@
+"""Skinning weights for any source mesh a user brings: welded seams, triangle soups (STL),
+unreferenced vertices and zero-area triangles."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from ..errors import MeshValidationError
+from ..mesh import bbox_diagonal, validate_mesh
+from .skinning_eigenmodes import skinning_eigenmodes
+
+__all__ = ["mesh_skinning_weights"]
+
+log = logging.getLogger(__name__)
+
+
+def mesh_skinning_weights(V, F, modes: int, seed: int = 0, weld_tolerance: float = 1e-9
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """Skinning eigenmodes (Eq. 4) of ``(V, F)``, computed on a cleaned copy of the mesh and
+    mapped back to every input vertex.
+
+    Cleaning, so that the cotangent Laplacian is well defined and connected where the surface
+    is: vertices closer than ``weld_tolerance`` times the bounding-box diagonal are welded
+    (UV seams, STL triangle soups), triangles with a repeated corner or zero area are left
+    out, and only referenced vertices enter the eigenproblem. Vertices left out get the
+    weights of the nearest vertex that entered it, so welded copies move together.
+
+    Parameters
+    ----------
+    V : (n, 3) float
+    F : (f, 3) int
+    modes : int
+    seed : int
+    weld_tolerance : float
+        Relative to the bounding-box diagonal.
+
+    Returns
+    -------
+    W : (n, modes) float64
+        ``W^T M W = I`` for the mass matrix of the cleaned mesh.
+    eigenvalues : (modes,) float64
+
+    Raises
+    ------
+    MeshValidationError
+        If fewer than ``modes`` (or 4) vertices remain after cleaning.
+
+    Examples
+    --------
+    >>> import trimesh
+    >>> s = trimesh.creation.icosphere(1)
+    >>> soup = s.vertices[s.faces].reshape(-1, 3)          # what an STL file holds
+    >>> W, lam = mesh_skinning_weights(soup, np.arange(len(soup)).reshape(-1, 3), 4)
+    >>> W.shape, bool(lam[1] > 1e-3)                        # connected again: one zero eigenvalue
+    ((240, 4), True)
+    """
+    V, F = validate_mesh(V, F, "source")
+    n = V.shape[0]
+    diag = max(bbox_diagonal(V), np.finfo(float).tiny)
+    tol = weld_tolerance * diag
+    key = np.round(V / tol).astype(np.int64)
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.ravel()
+    Vw = V[first]
+    Fw = inverse[F]
+    repeated = (Fw[:, 0] == Fw[:, 1]) | (Fw[:, 1] == Fw[:, 2]) | (Fw[:, 0] == Fw[:, 2])
+    area2 = np.linalg.norm(np.cross(Vw[Fw[:, 1]] - Vw[Fw[:, 0]], Vw[Fw[:, 2]] - Vw[Fw[:, 0]]), axis=1)
+    degenerate = repeated | (area2 <= 1e-14 * diag * diag)
+    Fw = Fw[~degenerate]
+    if Fw.shape[0] == 0:
+        raise MeshValidationError("source: every triangle is degenerate (zero area)")
+    used = np.unique(Fw)
+    if used.size < max(modes, 4):
+        raise MeshValidationError(
+            f"source: {used.size} usable vertices after welding and dropping degenerate "
+            f"triangles, fewer than the {max(modes, 4)} needed for {modes} modes"
+        )
+    compact = np.full(Vw.shape[0], -1, dtype=np.int64)
+    compact[used] = np.arange(used.size)
+    Wc, lam = skinning_eigenmodes(Vw[used], compact[Fw], modes, seed=seed)
+
+    # each input vertex -> welded vertex -> row of Wc; welded vertices not in the
+    # eigenproblem take the row of the nearest one that is
+    row = compact[inverse]
+    missing = row < 0
+    if missing.any():
+        from scipy.spatial import cKDTree
+
+        _, nearest = cKDTree(Vw[used]).query(V[missing])
+        row[missing] = nearest
+    changes = {
+        "welded": int(n - Vw.shape[0]),
+        "degenerate_faces": int(degenerate.sum()),
+        "unreferenced": int(missing.sum()),
+    }
+    if any(changes.values()):
+        log.warning(
+            "source mesh cleaned for the eigenbasis: %d vertices welded, %d degenerate "
+            "triangles left out, %d vertices outside the eigenproblem (they follow their "
+            "nearest vertex)", changes["welded"], changes["degenerate_faces"], changes["unreferenced"],
+        )
+    return Wc[row], lam
