@@ -77,13 +77,11 @@ def test_atomic_write_leaves_old_file_on_failure(tmp_path):
     path = tmp_path / "f.txt"
     atomic_write_bytes(path, b"old")
 
-    class Boom(bytes):
-        pass
-
     with pytest.raises(TypeError):
         atomic_write_bytes(path, object())  # not bytes: fails while writing
     assert path.read_bytes() == b"old"
     assert [p.name for p in tmp_path.iterdir()] == ["f.txt"]
+    assert path.stat().st_mode & 0o044  # readable by others like any file (mkstemp makes 0600)
 
 
 def test_demo_runs_without_shared_data(tmp_path, capsys):

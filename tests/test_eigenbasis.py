@@ -11,6 +11,8 @@ from morphmodes_vol.eigenbasis import (
     skinning_eigenmodes,
     to_paper_z,
 )
+from morphmodes_vol.eigenbasis import mesh_skinning_weights
+from morphmodes_vol.errors import MeshValidationError, OptionError
 from morphmodes_vol.primitives import capsule, icosphere
 
 
@@ -35,7 +37,7 @@ def test_lumped_mass_sums_to_area():
         assert M.diagonal().sum() == pytest.approx(area, rel=1e-10)
     V3 = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
     F3 = np.array([[0, 2, 1]])
-    with pytest.raises(Exception):
+    with pytest.raises(OptionError, match="voronoi"):
         lumped_mass(V3, F3, "nope")
 
 
@@ -124,3 +126,48 @@ def test_implicit_lbs_matches_explicit_eq5(rng):
     for j in range(5):
         block = BtB[12 * j : 12 * j + 12, 12 * j : 12 * j + 12]
         np.testing.assert_allclose(block, np.kron(gram[j], np.eye(3)), atol=1e-10)
+
+
+def _lumpy(subdivisions):
+    V, F = icosphere(subdivisions)
+    V = V * [1.0, 0.65, 0.45]
+    return V * (1 + 0.2 * np.sin(3 * V[:, 0] + 0.5) * np.cos(2 * V[:, 1]))[:, None], F
+
+
+def test_sparse_solver_is_seed_independent_for_simple_eigenvalues():
+    V, F = _lumpy(3)  # 642 vertices: the sparse shift-invert path
+    W0, lam0 = skinning_eigenmodes(V, F, 6, seed=0)
+    W1, lam1 = skinning_eigenmodes(V, F, 6, seed=7)
+    assert np.all(np.diff(lam0) > 1e-3 * lam0[-1])  # no repeated eigenvalue on this shape
+    assert lam0[1] > 0  # connected: a single zero eigenvalue, computed, not imposed
+    np.testing.assert_allclose(lam0, lam1, rtol=1e-8)
+    np.testing.assert_allclose(W0, W1, atol=1e-7)
+
+
+def test_mesh_weights_weld_a_triangle_soup():
+    V, F = icosphere(2)
+    soup = V[F].reshape(-1, 3)
+    Fs = np.arange(len(soup)).reshape(-1, 3)
+    W_soup, lam_soup = mesh_skinning_weights(soup, Fs, 5)
+    W, lam = skinning_eigenmodes(V, F, 5)
+    np.testing.assert_allclose(lam_soup, lam, rtol=1e-8, atol=1e-10)
+    # copies of one vertex get identical weights: compare each soup vertex with the first
+    # copy of the same mesh vertex
+    idx = F.ravel()
+    first = {}
+    for k, v in enumerate(idx):
+        first.setdefault(v, k)
+    same = np.array([first[v] for v in idx])
+    np.testing.assert_array_equal(W_soup, W_soup[same])
+
+
+def test_mesh_weights_unreferenced_vertex_and_degenerate_face():
+    V, F = icosphere(2)
+    extra = np.vstack([V, [[1.01, 0.0, 0.0]]])  # unreferenced, next to vertex argmax x
+    Fdeg = np.vstack([F, [[0, 1, 1]], [[0, 0, 0]]])  # repeated corners: zero area
+    W, lam = mesh_skinning_weights(extra, Fdeg, 4)
+    W_ref, lam_ref = skinning_eigenmodes(V, F, 4)
+    np.testing.assert_allclose(lam, lam_ref, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(W[-1], W[np.argmax(V[:, 0])])
+    with pytest.raises(MeshValidationError, match="usable vertices"):
+        mesh_skinning_weights(V, F[:1], 4)

@@ -67,8 +67,11 @@ def test_result_is_in_the_original_frame_whatever_the_units():
     V, F = lumpy_ellipsoid()
     target = V * 1.1 + [0.05, 0, 0]
     small = mm.register((V, F), (target, F), grid=16, modes=2)
-    big = mm.register((V * 1000 + 5e4, F), (target * 1000 + 5e4, F), grid=16, modes=2)
-    np.testing.assert_allclose(big.vertices, small.vertices * 1000 + 5e4, rtol=0, atol=1e-6 * 1000)
+    big = mm.register((V * 1000 + 5e5, F), (target * 1000 + 5e5, F), grid=16, modes=2)
+    np.testing.assert_allclose(big.vertices, small.vertices * 1000 + 5e5, rtol=0, atol=1e-6 * 1000)
+    # the dense map does not suffer from float32 searches at large coordinates
+    np.testing.assert_array_equal(big.correspondence_faces, small.correspondence_faces)
+    np.testing.assert_allclose(big.correspondence_barycentrics, small.correspondence_barycentrics, atol=1e-6)
 
 
 def test_same_seed_same_result():
@@ -88,8 +91,51 @@ def test_one_call_and_object_agree_and_options_are_checked():
     np.testing.assert_array_equal(r1.vertices, r2.vertices)
     with pytest.raises(mm.OptionError):
         mm.register((V, F), (V, F), grid=16, modes=10**6)
+    with pytest.raises(mm.OptionError, match="exceeds the source"):
+        mm.register((V, F), (V, F), grid=16, modes=len(V) + 1)
     with pytest.raises(mm.OptionError):
         mm.register((V, F), (V, F), not_an_option=3)
+
+
+def test_iteration_caps_and_stage_bookkeeping():
+    V, F = flat_capsule()
+    target = bend(V, np.deg2rad(40))
+    r = mm.register((V, F), (target, F), grid=16, modes=6, max_iterations=10,
+                    max_iterations_per_stage=5, stall_start=1e-9, stall_end=1e-9)
+    h = r.history
+    assert r.status == "max_iterations"
+    assert r.modes == 2 and r.T.shape == (2, 3, 4)  # no empty third mode
+    assert h.stage_starts == [0, 5] and h.stage_ends == ["iteration_cap", "iteration_cap"]
+    assert len(h.step_rms) == 10 and h.modes == [1] * 5 + [2] * 5
+    assert len(h.stage_seconds) == 2 and sum(h.stage_evaluations) + 1 == h.evaluations
+    r = mm.register((V, F), (target, F), grid=16, modes=2, max_iterations_per_stage=3,
+                    stall_start=1e-9, stall_end=1e-9)
+    assert r.status == "stage_cap" and r.modes == 2
+
+
+def test_paper_plain_gradient_step_also_descends():
+    V, F = flat_capsule()
+    target = V * [1.1, 1.0, 1.05]
+    r = mm.register((V, F), (target, F), grid=16, modes=3, preconditioner="none", ground_truth=target)
+    assert r.history.energy[-1] < 0.5 * r.history.energy[0]
+    assert np.all(np.diff(r.history.energy) <= 0)
+
+
+def test_stl_soup_source_does_not_tear(tmp_path):
+    import trimesh
+
+    V, F = flat_capsule()
+    path = tmp_path / "src.stl"
+    trimesh.Trimesh(V, F, process=False).export(path)
+    Vs, Fs = mm.load_mesh(path)
+    assert len(Vs) == 3 * len(F)  # STL: a soup
+    target = bend(V, np.deg2rad(40))
+    r = mm.register(path, (target, F), grid=16, modes=6)
+    key = np.round(Vs, 6)
+    _, inverse = np.unique(key, axis=0, return_inverse=True)
+    # copies of one input vertex end up at the same place
+    spread = max(np.ptp(r.vertices[inverse.ravel() == k], axis=0).max() for k in range(inverse.max() + 1))
+    assert spread < 1e-9
 
 
 @pytest.mark.realdata
