@@ -115,7 +115,8 @@ class RegistrationResult:
 
 
 class Registration:
-    """State of one registration, built once: normalized meshes, grids, target SDF, basis.
+    """State of one registration, built once: normalized meshes, grids, eigenbasis (first, so
+    a source it cannot use fails early), target SDF.
 
     Parameters
     ----------
@@ -162,20 +163,20 @@ class Registration:
         self.timings["preprocess"] = time.perf_counter() - t
 
         t = time.perf_counter()
-        self.target_sdf = DenseTargetSDF.from_mesh(self.Y, self.target_faces, self.target_grid)
-        self.Q = self.quadrature.points()
-        self.g = self.target_sdf.sample(self.Q)
-        self.timings["target_sdf"] = time.perf_counter() - t
-        log.info("target SDF on %s nodes, %d quadrature points, %.2fs",
-                 self.target_grid.shape, self.Q.shape[0], self.timings["target_sdf"])
-
-        t = time.perf_counter()
         self.weights, self.eigenvalues = mesh_skinning_weights(
             self.X0, self.source_faces, self.options.modes, seed=self.options.seed
         )
         self.basis = LBSBasis(self.X0, self.weights)
         self.timings["eigenbasis"] = time.perf_counter() - t
         log.info("%d skinning eigenmodes in %.2fs", self.options.modes, self.timings["eigenbasis"])
+
+        t = time.perf_counter()
+        self.target_sdf = DenseTargetSDF.from_mesh(self.Y, self.target_faces, self.target_grid)
+        self.Q = self.quadrature.points()
+        self.g = self.target_sdf.sample(self.Q)
+        self.timings["target_sdf"] = time.perf_counter() - t
+        log.info("target SDF on %s nodes, %d quadrature points, %.2fs",
+                 self.target_grid.shape, self.Q.shape[0], self.timings["target_sdf"])
 
     def energy(self) -> SDFEnergy:
         """A fresh Eq. (3) evaluator for this pair (its evaluation counter starts at 0)."""

@@ -9,7 +9,7 @@ import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from ..errors import OptionError
+from ..errors import MeshValidationError, OptionError
 from ..mesh import validate_mesh
 from .cotangent_laplacian import cotangent_laplacian
 from .lumped_mass import lumped_mass
@@ -67,7 +67,7 @@ def skinning_eigenmodes(V, F, modes: int, seed: int = 0) -> tuple[np.ndarray, np
     M = lumped_mass(V, F)
     mass = M.diagonal()
     if not np.all(np.isfinite(L.data)) or np.any(mass <= 0) or not np.all(np.isfinite(mass)):
-        raise OptionError(
+        raise MeshValidationError(
             "the source mesh has degenerate triangles or unreferenced vertices "
             "(zero or non-finite mass / cotangent weights); clean it before registration"
         )
