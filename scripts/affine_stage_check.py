@@ -1,0 +1,20 @@
+"""Ground-truth error of the affine stage alone, run to convergence (1 mode, stall 1e-5,
+300 iterations), for lion poses given on the command line:
+
+    python scripts/affine_stage_check.py 01 04 05 07
+"""
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _data import data_dir  # noqa: E402
+
+import morphmodes_vol as mm  # noqa: E402
+
+data = data_dir()
+if data is None:
+    sys.exit("shared data not found (set MORPHMODES_DATA)")
+d = str(data / "lion-poses") + "/"
+for p in sys.argv[1:]:
+    r = mm.register(d+'lion-reference.obj', d+f'lion-{p}.obj', modes=1, ground_truth=d+f'lion-{p}.obj', max_iterations_per_stage=300, stall_start=1e-5, stall_end=1e-5)
+    print(p, 'identity', round(r.metrics['identity_error'],4), 'affine-only', round(r.metrics['ground_truth_error'],4), 'sdf rms', round(r.metrics['initial_sdf_rms'],4), '->', round(r.metrics['final_sdf_rms'],4), r.evaluations, flush=True)
