@@ -213,9 +213,8 @@ def optimize_adaptive(
             if dir_rms == 0:
                 end = "stalled"
                 break
-            if alpha is None:
-                alpha = options.max_step / dir_rms
-            alpha = min(alpha, options.max_step / dir_rms)
+            cap = options.max_step / dir_rms  # step length that moves vertices by max_step RMS
+            alpha = cap if alpha is None else min(alpha, cap)
 
             def trial(a: float, T=T, direction=direction):
                 ev = energy.evaluate(basis.deform(T + a * direction))
