@@ -9,16 +9,17 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+import typing
 from typing import Literal
 
 from .errors import OptionError
+from .sdf.source import SignMethod
 
 __all__ = ["RegistrationOptions", "Preconditioner"]
 
 Preconditioner = Literal["block", "none"]
 _PRECONDITIONERS = ("block", "none")
-SignMethod = Literal["raycast", "winding"]
-_SIGN_METHODS = ("raycast", "winding")
+_SIGN_METHODS = typing.get_args(SignMethod)
 
 
 @dataclass(frozen=True)

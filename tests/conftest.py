@@ -2,15 +2,11 @@
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 import numpy as np
 import pytest
 
+from morphmodes_vol.datasets import shared_data_dir
 from morphmodes_vol.primitives import capsule, icosphere
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def make_rng(seed: int = 12345) -> np.random.Generator:
@@ -39,12 +35,6 @@ def lumpy_sphere():
     V, F = icosphere(1)
     r = 1.0 + 0.15 * np.sin(3 * V[:, 0]) * np.cos(2 * V[:, 1]) + 0.1 * V[:, 2]
     return V * r[:, None], F
-
-
-def shared_data_dir() -> Path | None:
-    env = os.environ.get("MORPHMODES_DATA")
-    path = Path(env) if env else ROOT.parent / "shared" / "data"
-    return path if path.is_dir() else None
 
 
 @pytest.fixture
