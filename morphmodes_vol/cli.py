@@ -16,7 +16,7 @@ import numpy as np
 
 from .errors import MorphModesError
 from .export import MESH_FORMATS, write_outputs
-from .options import RegistrationOptions
+from .options import PRECONDITIONERS, RegistrationOptions
 
 __all__ = ["main"]
 
@@ -79,7 +79,7 @@ def _add_common(p: argparse.ArgumentParser, default_grid: int, default_modes: in
                    help=f"maximum number of skinning eigenmodes, m_max (default {default_modes})")
     p.add_argument("--max-iterations", type=int, default=None,
                    help=f"cap on gradient steps over all stages (default {d.max_iterations})")
-    p.add_argument("--preconditioner", choices=["block", "none"], default=None,
+    p.add_argument("--preconditioner", choices=list(PRECONDITIONERS), default=None,
                    help="'block' (default) or the paper's plain gradient step 'none'")
     p.add_argument("--seed", type=int, default=d.seed, help="seed of the eigensolver's start vector")
     p.add_argument("-v", "--verbose", action="store_true", help="log details and show tracebacks")

@@ -8,17 +8,17 @@ therefore 1% of the size of the scene, whatever the units of the input files.
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
 import typing
+from dataclasses import dataclass
 from typing import Literal
 
 from .errors import OptionError
 from .sdf.source import SignMethod
 
-__all__ = ["RegistrationOptions", "Preconditioner"]
+__all__ = ["RegistrationOptions", "Preconditioner", "PRECONDITIONERS"]
 
 Preconditioner = Literal["block", "none"]
-_PRECONDITIONERS = ("block", "none")
+PRECONDITIONERS = typing.get_args(Preconditioner)
 _SIGN_METHODS = typing.get_args(SignMethod)
 
 
@@ -114,8 +114,8 @@ class RegistrationOptions:
         need(0 < self.backtrack < 1, "backtrack", "a float in (0, 1)")
         need(_is_int(self.max_backtracks) and self.max_backtracks >= 1, "max_backtracks",
              "a positive integer")
-        need(self.preconditioner in _PRECONDITIONERS, "preconditioner",
-             f"one of {_PRECONDITIONERS}")
+        need(self.preconditioner in PRECONDITIONERS, "preconditioner",
+             f"one of {PRECONDITIONERS}")
         need(self.source_sign in _SIGN_METHODS, "source_sign", f"one of {_SIGN_METHODS}")
         need(_is_int(self.occupancy_samples) and self.occupancy_samples >= 1
              and self.occupancy_samples % 2 == 1, "occupancy_samples", "a positive odd integer")

@@ -15,6 +15,15 @@ data = data_dir()
 if data is None:
     sys.exit("shared data not found (set MORPHMODES_DATA)")
 d = str(data / "lion-poses") + "/"
-for p in sys.argv[1:]:
-    r = mm.register(d+'lion-reference.obj', d+f'lion-{p}.obj', modes=1, ground_truth=d+f'lion-{p}.obj', max_iterations_per_stage=300, stall_start=1e-5, stall_end=1e-5)
-    print(p, 'identity', round(r.metrics['identity_error'],4), 'affine-only', round(r.metrics['ground_truth_error'],4), 'sdf rms', round(r.metrics['initial_sdf_rms'],4), '->', round(r.metrics['final_sdf_rms'],4), r.evaluations, flush=True)
+for pose in sys.argv[1:]:
+    target = d + f"lion-{pose}.obj"
+    r = mm.register(
+        d + "lion-reference.obj", target, ground_truth=target,
+        modes=1, max_iterations_per_stage=300, stall_start=1e-5, stall_end=1e-5,
+    )
+    m = r.metrics
+    print(
+        f"{pose} identity {m['identity_error']:.4f} affine-only {m['ground_truth_error']:.4f} "
+        f"sdf rms {m['initial_sdf_rms']:.4f} -> {m['final_sdf_rms']:.4f} {r.evaluations}",
+        flush=True,
+    )

@@ -69,7 +69,7 @@ def skinning_eigenmodes(V, F, modes: int, seed: int = 0) -> tuple[np.ndarray, np
     if not np.all(np.isfinite(L.data)) or np.any(mass <= 0) or not np.all(np.isfinite(mass)):
         raise MeshValidationError(
             "the source mesh has degenerate triangles or unreferenced vertices "
-            "(zero or non-finite mass / cotangent weights); clean it before registration"
+            "(zero or non-finite mass / cotangent weights); mesh_skinning_weights cleans them"
         )
 
     if n <= _DENSE_LIMIT or modes >= n - 1:

@@ -24,7 +24,7 @@ import numpy as np
 from ..eigenbasis.lbs import LBSBasis
 from ..energy import EnergyEvaluation, SDFEnergy
 from ..errors import OptionError
-from ..options import RegistrationOptions
+from ..options import PRECONDITIONERS, RegistrationOptions
 from .linesearch import armijo_backtracking
 
 __all__ = ["optimize_adaptive", "OptimizationHistory", "ProgressEvent", "Status"]
@@ -128,7 +128,7 @@ def _precondition(grad: np.ndarray, basis: LBSBasis, kind: str) -> np.ndarray:
     if kind == "none":
         return -grad
     if kind != "block":
-        raise OptionError(f"preconditioner={kind!r}: expected one of ('block', 'none')")
+        raise OptionError(f"preconditioner={kind!r}: expected one of {PRECONDITIONERS}")
     gram = basis.gram_blocks(grad.shape[0])
     # Tikhonov on each 4x4 block, relative to its trace, guards planar/degenerate supports.
     reg = 1e-9 * np.trace(gram, axis1=1, axis2=2)[:, None, None] * np.eye(4)
