@@ -161,9 +161,9 @@ def target_field(V: np.ndarray, F: np.ndarray, resolution: int, padding: float) 
     >>> V, F = icosphere(3)
     >>> field = target_field(V, F, 24, 0.1)
     >>> frame = joint_normalization(V, 3 * V)       # a pair's frame: the box of a larger source
-    >>> far = frame.apply(np.array([[0.0, 0, 0], [3.0, 0, 0]]))   # inside / outside the grid
-    >>> np.round(field.sample(far, frame) / frame.scale, 2)
-    array([-1.,  2.])
+    >>> pts = frame.apply(np.array([[0.5, 0, 0], [3.0, 0, 0]]))   # inside / outside the grid
+    >>> np.round(field.sample(pts, frame) / frame.scale, 1)     # back to world units
+    array([-0.5,  2. ])
     """
     frame = joint_normalization(V)
     Vn = frame.apply(V)

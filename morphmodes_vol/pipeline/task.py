@@ -99,6 +99,8 @@ def run_pair(spec: PairSpec, events: Any = None) -> dict:
             return {"name": spec.name, "state": "skipped", "key": key, "seconds": 0.0}
         spec.outdir.mkdir(parents=True, exist_ok=True)
         (spec.outdir / "report.json").unlink(missing_ok=True)  # stale outputs of another key
+        for tmp in spec.outdir.glob(".*.tmp"):  # a write cut short by a killed run
+            tmp.unlink(missing_ok=True)
 
         opts = spec.options
         cache = ProductCache(spec.cache_dir)
