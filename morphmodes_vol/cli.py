@@ -164,6 +164,13 @@ def cmd_run(args) -> int:
     from .pipeline import load_pipeline, run_pipeline
 
     pipeline = load_pipeline(args.pipeline, output=args.output)
+    if args.executor == "dask" and not args.verbose:
+        try:  # Dask's scheduler and nannies log every connection at INFO (set before import)
+            import dask
+
+            dask.config.set({"logging.distributed": "warning"})
+        except ImportError:
+            pass
     progress = PairProgress(len(pipeline.pairs))
     print(f"{pipeline.name}: {len(pipeline.pairs)} pairs -> {pipeline.output} "
           f"(cache {pipeline.cache_dir}, executor {args.executor})", file=sys.stderr)

@@ -101,7 +101,7 @@ def _dask(specs, workers: int | None, scheduler: str | None, client, on_event: E
             client = Client(scheduler)
         else:
             cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1,
-                                   dashboard_address=None)
+                                   dashboard_address=":0", silence_logs=logging.WARNING)
             owned.append(cluster)
             client = Client(cluster)
         owned.insert(0, client)
