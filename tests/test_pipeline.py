@@ -310,3 +310,17 @@ def test_kill_9_mid_run_then_resume_completes_every_pair(dataset, tmp_path):
     for entry in (out / "cache").glob("*/*.npz"):
         with np.load(entry) as data:
             assert data.files
+
+
+@pytest.mark.realdata
+def test_shipped_definitions_expand_on_the_shared_data(data_dir, monkeypatch):
+    monkeypatch.setenv("MORPHMODES_DATA", str(data_dir))
+    for name in ("lion_poses", "cat_poses", "lion_grid_study", "lion_poses_quick"):
+        p = load_pipeline(REPO / "pipelines" / f"{name}.toml")
+        assert len(p.pairs) == 9, name
+        assert all(s.source.is_file() and s.ground_truth == s.target and s.target.is_file() for s in p.pairs)
+    lion = load_pipeline(REPO / "pipelines" / "lion_poses.toml")
+    assert all(s.options == RegistrationOptions() for s in lion.pairs)   # the default settings
+    assert [s.target.name for s in lion.pairs] == [f"lion-{i:02d}.obj" for i in range(1, 10)]
+    study = load_pipeline(REPO / "pipelines" / "lion_grid_study.toml")
+    assert sorted({s.options.grid for s in study.pairs}) == [32, 48, 64]
