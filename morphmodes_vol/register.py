@@ -194,11 +194,11 @@ class Registration:
             self.g = self.target_sdf.sample(self.Q)
         else:
             self.target_sdf = target_sdf
-            self.target_grid = target_sdf.sdf.grid
             self.g = target_sdf.sample(self.Q, self.normalization)
         self.timings["target_sdf"] = time.perf_counter() - t
         log.info("target SDF on %s nodes, %d quadrature points, %.2fs",
-                 self.target_grid.shape, self.Q.shape[0], self.timings["target_sdf"])
+                 self.target_sdf.sdf.grid.shape if target_sdf is not None else self.target_grid.shape,
+                 self.Q.shape[0], self.timings["target_sdf"])
 
     def energy(self) -> SDFEnergy:
         """A fresh Eq. (3) evaluator for this pair (its evaluation counter starts at 0)."""
