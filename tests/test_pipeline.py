@@ -106,6 +106,8 @@ def test_sweep_and_data_dir_from_environment(dataset, monkeypatch):
     (GLOB + "[sweep]\ngrid = 12\n", "sweep.grid"),
     ('data_dir = "${MM_SURELY_UNSET_VAR}"\n' + GLOB, "data_dir"),
     (GLOB + '[outputs]\nformat = "vtk"\n', "outputs.format"),
+    (GLOB.replace('"target"', '"meshes/pose0.obj"'), "pairs.ground_truth"),
+    (GLOB + '[sweep]\npadding = ["wide"]\n', "sweep"),
     ("[pairs\n", "not valid TOML"),
     ("name = 'x'\n", "pairs"),
 ])

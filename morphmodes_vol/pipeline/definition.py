@@ -194,7 +194,7 @@ def _variants(doc: dict, base: RegistrationOptions, ck: _Checker) -> list[tuple[
         variant = dict(zip(table, combo))
         try:
             out.append((variant, base.replace(**variant)))
-        except OptionError as exc:
+        except (OptionError, TypeError) as exc:
             ck.fail("sweep", str(exc))
     return out
 
@@ -223,8 +223,9 @@ def _raw_pairs(table: dict, data: Path, ck: _Checker) -> list[tuple[Path, Path, 
             ck.fail(key, f"must be a path string, got {value!r}")
         return _norm(base / _expand(value, ck, key))
 
-    if gt not in _GROUND_TRUTH and mode in ("targets", "all"):
-        ck.fail("pairs.ground_truth", f"must be one of {_GROUND_TRUTH} with '{mode}', got {gt!r}")
+    if gt not in _GROUND_TRUTH:
+        ck.fail("pairs.ground_truth", f"must be one of {_GROUND_TRUTH} (list entries and manifest "
+                                      f"rows may name a mesh), got {gt!r}")
     default_gt = "target" if gt == "target" else None
     if mode == "targets":
         source = resolve(table["source"], "pairs.source", data)
