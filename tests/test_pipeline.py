@@ -273,6 +273,13 @@ def test_same_numbers_from_every_executor(dataset, tmp_path):
         np.testing.assert_array_equal(a[name], c[name])
 
 
+def test_dask_executor_without_dask_says_how_to_install(dataset, monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "distributed", None)      # import distributed -> ImportError
+    path = _toml(dataset, GLOB + TINY)
+    assert main(["run", str(path), "--executor", "dask"]) == 2
+    assert "pip install 'dask[distributed]'" in capsys.readouterr().err
+
+
 def test_kill_9_mid_run_then_resume_completes_every_pair(dataset, tmp_path):
     body = ('[pairs]\nsource = "meshes/source.obj"\ntargets = "meshes/pose*.obj"\nground_truth = "target"\n'
             "[options]\ngrid = 16\nmodes = 3\nmax_iterations = 60\n")
