@@ -142,22 +142,46 @@ def cmd_demo(args) -> int:
 
 
 class PairProgress:
-    """Pipeline progress on stderr: one line per state change of a pair."""
+    """Pipeline progress on stderr. On a terminal: a bar over the pairs with the latest
+    pair's stage, rewritten in place, and one kept line per finished pair; otherwise one line
+    per state change of a pair."""
 
-    def __init__(self, total: int, stream=None):
+    def __init__(self, total: int, stream=None, width: int = 20):
         self.stream = stream or sys.stderr
+        self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
         self.total = total
+        self.width = width
         self.counts = {"ok": 0, "skipped": 0, "failed": 0}
+        self._shown = 0
+
+    def _head(self) -> str:
+        done = sum(self.counts.values())
+        if not self.tty:
+            return f"[{done}/{self.total}, {self.counts['failed']} failed]"
+        filled = self.width * done // max(self.total, 1)
+        return f"[{'#' * filled}{'.' * (self.width - filled)}] {done}/{self.total}, {self.counts['failed']} failed"
 
     def event(self, name: str, text: str) -> None:
-        done = sum(self.counts.values())
-        self.stream.write(f"[{done}/{self.total}, {self.counts['failed']} failed] {name}: {text}\n")
+        line = f"{self._head()} {name}: {text}"
+        if not self.tty:
+            self.stream.write(line + "\n")
+        else:
+            final = text.startswith(("done", "FAILED", "skipped", "worker lost"))
+            pad = " " * max(self._shown - len(line), 0)
+            self.stream.write("\r" + (f"{name}: {text}" + " " * max(self._shown - len(name) - len(text) - 2, 0)
+                                       + "\n" if final else line + pad))
+            self._shown = 0 if final else len(line)
         self.stream.flush()
 
     def result(self, result: dict) -> None:
         self.counts[result["state"]] += 1
         if result["state"] == "failed" and "worker lost" in (result.get("error") or ""):
             self.event(result["name"], result["error"])
+
+    def close(self) -> None:
+        if self.tty and self._shown:
+            self.stream.write("\n")
+            self.stream.flush()
 
 
 def cmd_run(args) -> int:
@@ -174,8 +198,11 @@ def cmd_run(args) -> int:
     progress = PairProgress(len(pipeline.pairs))
     print(f"{pipeline.name}: {len(pipeline.pairs)} pairs -> {pipeline.output} "
           f"(cache {pipeline.cache_dir}, executor {args.executor})", file=sys.stderr)
-    run = run_pipeline(pipeline, args.executor, args.workers, args.scheduler,
-                       on_event=None if args.quiet else progress.event, on_result=progress.result)
+    try:
+        run = run_pipeline(pipeline, args.executor, args.workers, args.scheduler,
+                           on_event=None if args.quiet else progress.event, on_result=progress.result)
+    finally:
+        progress.close()
     print(run.paths["md"].read_text(), end="")
     counts = progress.counts
     print(f"{counts['ok']} registered, {counts['skipped']} already complete, {counts['failed']} failed "
