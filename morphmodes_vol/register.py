@@ -21,6 +21,7 @@ from .mesh import MeshLike, Normalization, as_mesh, bbox_diagonal, joint_normali
 from .options import RegistrationOptions
 from .optimize import OptimizationHistory, ProgressEvent, optimize_adaptive
 from .sdf import DenseTargetSDF, Grid, closest_points
+from .stages import SourceEigenbasis, TargetField
 
 __all__ = ["register", "Registration", "RegistrationResult", "ground_truth_error"]
 
@@ -122,6 +123,12 @@ class Registration:
     ----------
     source, target : path, trimesh.Trimesh or (V, F) tuple
     options : RegistrationOptions, optional
+    eigenbasis : SourceEigenbasis, optional
+        A precomputed eigenbasis of this source (:func:`morphmodes_vol.stages.source_eigenbasis`,
+        e.g. from a pipeline's cache), used instead of computing one in the pair's frame.
+    target_sdf : TargetField, optional
+        A precomputed target SDF of this target (:func:`morphmodes_vol.stages.target_field`),
+        sampled at the quadrature points instead of building a dense grid over the pair's box.
 
     Examples
     --------
@@ -133,7 +140,8 @@ class Registration:
     True
     """
 
-    def __init__(self, source: MeshLike, target: MeshLike, options: RegistrationOptions | None = None):
+    def __init__(self, source: MeshLike, target: MeshLike, options: RegistrationOptions | None = None,
+                 *, eigenbasis: SourceEigenbasis | None = None, target_sdf: TargetField | None = None):
         self.options = options if options is not None else RegistrationOptions()
         self.timings: dict[str, float] = {}
 
@@ -163,20 +171,34 @@ class Registration:
         self.timings["preprocess"] = time.perf_counter() - t
 
         t = time.perf_counter()
-        self.weights, self.eigenvalues = mesh_skinning_weights(
-            self.X0, self.source_faces, self.options.modes, seed=self.options.seed
-        )
+        if eigenbasis is None:
+            self.weights, self.eigenvalues = mesh_skinning_weights(
+                self.X0, self.source_faces, self.options.modes, seed=self.options.seed
+            )
+        else:
+            expected = (self.source_vertices.shape[0], self.options.modes)
+            if eigenbasis.weights.shape != expected:
+                raise OptionError(
+                    f"the precomputed eigenbasis has weights of shape {eigenbasis.weights.shape}, "
+                    f"expected {expected} (source vertices, modes)"
+                )
+            self.weights, self.eigenvalues = eigenbasis.in_frame(self.normalization)
         self.basis = LBSBasis(self.X0, self.weights)
         self.timings["eigenbasis"] = time.perf_counter() - t
         log.info("%d skinning eigenmodes in %.2fs", self.options.modes, self.timings["eigenbasis"])
 
         t = time.perf_counter()
-        self.target_sdf = DenseTargetSDF.from_mesh(self.Y, self.target_faces, self.target_grid)
         self.Q = self.quadrature.points()
-        self.g = self.target_sdf.sample(self.Q)
+        if target_sdf is None:
+            self.target_sdf = DenseTargetSDF.from_mesh(self.Y, self.target_faces, self.target_grid)
+            self.g = self.target_sdf.sample(self.Q)
+        else:
+            self.target_sdf = target_sdf
+            self.g = target_sdf.sample(self.Q, self.normalization)
         self.timings["target_sdf"] = time.perf_counter() - t
         log.info("target SDF on %s nodes, %d quadrature points, %.2fs",
-                 self.target_grid.shape, self.Q.shape[0], self.timings["target_sdf"])
+                 self.target_sdf.sdf.grid.shape if target_sdf is not None else self.target_grid.shape,
+                 self.Q.shape[0], self.timings["target_sdf"])
 
     def energy(self) -> SDFEnergy:
         """A fresh Eq. (3) evaluator for this pair (its evaluation counter starts at 0)."""
