@@ -60,9 +60,10 @@ class MemoryEstimate:
         return self.base + self.quadrature + self.target_grid + self.eigenbasis + self.faces
 
     def describe(self) -> str:
-        """``"about 12.3 GB (quadrature 1.2, target grid ..., in GB)"``."""
+        """``"about 12.31 GB (libraries 0.25, quadrature 1.20, ... GB)"``."""
         return (
-            f"about {self.total / GB:.1f} GB (quadrature {self.quadrature / GB:.2f}, "
+            f"about {self.total / GB:.2f} GB (libraries {self.base / GB:.2f}, "
+            f"quadrature {self.quadrature / GB:.2f}, "
             f"target grid {self.target_grid / GB:.2f}, eigenbasis {self.eigenbasis / GB:.2f}, "
             f"faces {self.faces / GB:.2f} GB)"
         )
@@ -86,7 +87,7 @@ def estimate_memory(n_vertices: int, n_faces: int, n_target_faces: int, modes: i
     --------
     >>> e = estimate_memory(5000, 10000, 10000, 20, 64**3, 64**3)
     >>> round(e.total / 1e9, 2)
-    0.25
+    0.45
     """
     n = int(n_vertices)
     if n <= DENSE_EIGEN_LIMIT:

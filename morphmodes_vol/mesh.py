@@ -106,7 +106,9 @@ def validate_mesh(V, F, name: str = "mesh", min_vertices: int = 3) -> tuple[np.n
             f"{name}: faces must be triangles (m, 3) or quads (m, 4), got shape {F_in.shape}"
         )
     if not np.issubdtype(F_in.dtype, np.integer):
-        if not np.issubdtype(F_in.dtype, np.floating) or not np.all(np.mod(F_in, 1) == 0):
+        with np.errstate(invalid="ignore"):  # NaN and inf are not integers either
+            integral = np.issubdtype(F_in.dtype, np.floating) and np.all(np.mod(F_in, 1) == 0)
+        if not integral:
             raise MeshValidationError(f"{name}: face indices must be integers")
     if not np.all(np.abs(F_in) < 2**62):  # also catches NaN, inf and int64 overflow
         raise MeshValidationError(f"{name}: face indices must be finite integers")

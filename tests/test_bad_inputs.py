@@ -156,7 +156,7 @@ def test_too_large_grid_is_refused_before_any_heavy_work(monkeypatch):
     monkeypatch.setattr(importlib.import_module("morphmodes_vol.register"), "mesh_skinning_weights", fail)
     V, F, target = small_pair()
     with pytest.raises(OptionError) as info:
-        mm.register((V, F), (target, F), grid=1024)  # ~0.8e9 quadrature points
+        mm.register((V, F), (target, F), grid=1024)  # ~0.17e9 quadrature points
     message = str(info.value)
     assert "would need about" in message and "above the limit of 8 GB" in message
     assert "memory_limit_gb" in message and "x1024 quadrature grid" in message
@@ -225,13 +225,16 @@ def test_inconsistent_and_inverted_orientation_give_the_same_sdfs():
         assert reg.energy().evaluate(reg.X0).energy == clean.energy().evaluate(clean.X0).energy
 
 
-def test_open_and_non_manifold_sources_warn_and_register(caplog):
+def test_open_and_non_manifold_meshes_register(caplog):
     V, F, target = small_pair()
     holes = F[6:]  # three triangles removed near a pole
     with caplog.at_level(logging.WARNING):
         mm.Registration((V, holes), (target, F), mm.RegistrationOptions(**FAST))
     assert "not closed or has non-manifold edges" in caplog.text
     r = mm.register((V, holes), (target, F), source_sign="winding", ground_truth=target, **FAST)
+    assert r.metrics["ground_truth_error"] < 0.5 * r.metrics["identity_error"]
+    # an open target: its sign comes from the winding number, robust behind holes
+    r = mm.register((V, F), (target, holes), ground_truth=target, **FAST)
     assert r.metrics["ground_truth_error"] < 0.5 * r.metrics["identity_error"]
     # a fin: a third triangle on an edge of the closed source
     a, b = F[0, 0], F[0, 1]
@@ -255,10 +258,12 @@ def test_units_do_not_matter(scale, offset):
     assert np.abs(unit.vertices - V).max() > 0.02  # and the registration did move it
 
 
-def test_disjoint_bounding_boxes_move_towards_the_target():
+def test_disjoint_bounding_boxes_move_towards_the_target(caplog):
     V, F, _ = small_pair()
     far = V + [1.5, 0, 0]  # the boxes do not overlap: 0.7 of the capsule's length apart
-    r = mm.register((V, F), (far, F), ground_truth=far, grid=16, modes=2, max_iterations=40)
+    with caplog.at_level(logging.WARNING):
+        r = mm.register((V, F), (far, F), ground_truth=far, grid=16, modes=2, max_iterations=40)
+    assert "the registration may have failed" in caplog.text
     assert np.isfinite(r.vertices).all()
     assert r.history.energy[-1] < 0.5 * r.history.energy[0]
     assert r.metrics["ground_truth_error"] < 0.9 * r.metrics["identity_error"]
@@ -335,3 +340,24 @@ def test_sliver_triangles_keep_weights_smooth():
     W, lam = mesh_skinning_weights(V2, F2, 6)
     assert np.isfinite(W).all() and np.isfinite(lam).all()
     assert np.abs(W[n] - W[a]).max() < 1e-6 * np.abs(W).max()
+
+
+def test_cli_memory_limit_option(tmp_path, capsys):
+    V, F, target = small_pair()
+    src, tgt = write(tmp_path / "s.obj", V, F), write(tmp_path / "t.obj", target, F)
+    assert main(["register", str(src), str(tgt), "-o", str(tmp_path / "o"), "--grid", "12",
+                 "--memory-limit", "0.01", "-q"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{src} (66 vertices)" in err[0] and "above the limit of 0.01 GB" in err[0]
+
+
+def test_eigensolver_failure_is_a_clear_error(monkeypatch):
+    import scipy.sparse.linalg as spla
+
+    def no_convergence(*args, **kwargs):
+        raise spla.ArpackNoConvergence("ARPACK error -1: No convergence", np.zeros(0), np.zeros((0, 0)))
+
+    monkeypatch.setattr(spla, "eigsh", no_convergence)
+    V, F = icosphere(3)  # 642 vertices: the sparse solver
+    with pytest.raises(MeshValidationError, match="source: the skinning eigenproblem could not be solved"):
+        mm.register((V, F), (V * 1.1, F), grid=8, modes=2)
