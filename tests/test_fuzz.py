@@ -157,18 +157,26 @@ def malformed_mesh(draw):
     source=malformed_mesh(),
     target=malformed_mesh(),
     options=st.fixed_dictionaries({
-        # mostly valid values (so that the optimizer runs), sometimes invalid ones
-        "grid": st.integers(4, 10) | st.integers(4, 10) | st.integers(-2, 3),
-        "modes": st.integers(1, 4) | st.integers(1, 4) | st.sampled_from([0, 13, 10**6]),
+        "grid": st.integers(4, 10),
+        "modes": st.integers(1, 4),
         "max_iterations": st.integers(1, 6),
         "max_iterations_per_stage": st.integers(1, 3),
-        "padding": st.floats(0, 1) | st.floats(0, 1) | st.floats(allow_nan=True),
-        "max_step": st.floats(1e-6, 10) | st.floats(1e-6, 10) | st.sampled_from([float("inf"), 0.0, -1.0]),
+        "padding": st.floats(0, 1),
+        "max_step": st.floats(1e-6, 10),
         "preconditioner": st.sampled_from(["block", "none"]),
         "source_sign": st.sampled_from(["raycast", "winding"]),
     }),
+    # valid options, so that the optimizer runs; one example in five overrides one with an
+    # invalid value (chosen by a drawn seed: hypothesis' own choices favour the last entries)
+    seed=st.integers(0, 2**16),
 )
-def test_fuzz_register(source, target, options):
+def test_fuzz_register(source, target, options, seed):
+    rng = np.random.default_rng(seed)
+    if rng.random() < 0.2:
+        bad = [("grid", 3), ("modes", 0), ("modes", 13), ("padding", float("nan")),
+               ("max_step", float("inf")), ("max_step", 0.0), ("padding", -1.0), ("stall_end", 1.0)]
+        name, value = bad[rng.integers(len(bad))]
+        options = {**options, name: value}
     try:
         r = mm.register(source, target, **options)
     except MorphModesError as exc:

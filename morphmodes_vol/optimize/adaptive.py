@@ -252,7 +252,8 @@ def optimize_adaptive(
                 max_trials=options.max_backtracks,
             )
             if not ls.accepted:
-                end = "fault" if faults else "line_search"
+                # a fault when even the shortest trial was not finite
+                end = "fault" if faults and faults[-1] == ls.step else "line_search"
                 break
             T = T + ls.step * direction
             current = ls.state
