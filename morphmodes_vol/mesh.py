@@ -61,9 +61,9 @@ def validate_mesh(V, F, name: str = "mesh", min_vertices: int = 3) -> tuple[np.n
     F : (m, 3) int64
         A copy of the faces (``(2 m, 3)`` for quads).
 
-    Quads ``(m, 4)`` are split into triangles ``(a, b, c), (a, c, d)``: all quads first,
-    then all second halves, so ``F`` has ``2 m`` rows (files with quads are triangulated
-    the same way by trimesh while reading).
+    Quads ``(m, 4)`` are split into triangles ``(a, b, c), (a, c, d)``: all first halves,
+    then all second halves, so ``F`` has ``2 m`` rows (trimesh splits the quads of a file
+    into the same triangles while reading).
 
     Raises
     ------

@@ -73,7 +73,7 @@ class RegistrationOptions:
     memory_limit_gb : float or None
         Refuse, before any heavy work, a registration whose estimated peak memory
         (:mod:`morphmodes_vol.limits`: vertices, modes, grid sizes) exceeds this many GB;
-        ``None`` disables the check. 8 GB: a lion pair at ``grid=64`` needs about 0.3 GB.
+        ``None`` disables the check. A lion pair at ``grid=64`` is estimated at 0.3 GB.
     """
 
     grid: int = 64

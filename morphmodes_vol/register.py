@@ -172,7 +172,8 @@ class Registration:
             f"{_label(target, 'target')} ({len(self.target_faces)} faces) with {self.options.modes} "
             f"modes on a {'x'.join(map(str, self.quadrature.shape))} quadrature grid",
         )
-        # faces for the SDFs: no degenerate or duplicate triangles, consistent orientation
+        # faces for the SDFs and the eigenbasis: no degenerate or duplicate triangles,
+        # consistent orientation (the output keeps the faces as given)
         self.source_sdf_faces = sdf_faces(self.X0, self.source_faces, "source")
         self.target_sdf_faces = sdf_faces(self.Y, self.target_faces, "target")
         if self.options.source_sign == "raycast" and not _is_closed(self.source_sdf_faces):
@@ -185,7 +186,7 @@ class Registration:
 
         t = time.perf_counter()
         self.weights, self.eigenvalues = mesh_skinning_weights(
-            self.X0, self.source_faces, self.options.modes, seed=self.options.seed
+            self.X0, self.source_sdf_faces, self.options.modes, seed=self.options.seed
         )
         self.basis = LBSBasis(self.X0, self.weights)
         self.timings["eigenbasis"] = time.perf_counter() - t

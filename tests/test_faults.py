@@ -134,3 +134,20 @@ def test_same_inputs_and_seed_give_identical_outputs(tmp_path):
         r.pop("timings")
         r["history"].pop("stage_seconds")
     assert ra == rb
+
+
+def test_cli_rolled_back_run_exits_0_with_complete_outputs(tmp_path, monkeypatch, capsys):
+    from morphmodes_vol.cli import main
+
+    V, F = capsule(count=(8, 8))
+    src, tgt = tmp_path / "s.obj", tmp_path / "t.obj"
+    trimesh.Trimesh(V, F, process=False).export(src)
+    trimesh.Trimesh(V * 1.1, F, process=False).export(tgt)
+    inner = mm.Registration.energy
+    monkeypatch.setattr(mm.Registration, "energy", lambda self: FaultyEnergy(inner(self), range(5, 10**6)))
+    out = tmp_path / "out"
+    assert main(["register", str(src), str(tgt), "-o", str(out), "--grid", "12", "--modes", "2", "-q"]) == 0
+    printed = capsys.readouterr().out
+    assert "status: rolled_back" in printed and "last good state" in printed
+    assert strict_json(out / "report.json")["status"] == "rolled_back"
+    assert sorted(p.name for p in out.iterdir()) == ["correspondence.npz", "registered.obj", "report.json", "state.npz"]
