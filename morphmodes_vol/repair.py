@@ -1,12 +1,13 @@
-"""Faces fit for signed-distance queries: no degenerate or duplicate triangles, consistent
-orientation.
+"""Faces fit for signed-distance queries and the eigenbasis: no degenerate or duplicate
+triangles, consistent orientation.
 
-Scans arrive with zero-area slivers, doubled triangles and patches of flipped faces. None of
-these changes the surface, but each one breaks an inside test: a doubled triangle is crossed
-twice by a ray (ray parity says *outside*), a flipped patch subtracts from the generalized
-winding number, an inside-out mesh has winding number -1 inside. The SDFs are therefore
-computed on a cleaned copy of the faces; vertices, their order and the faces written on
-export are never changed.
+Scans arrive with zero-area slivers, doubled triangles and patches of flipped faces. The
+generalized winding number (the target's inside test, and the source's with
+``source_sign="winding"``) depends on orientation: a flipped patch subtracts its solid angle,
+and an inside-out mesh has winding number -1 inside, so every point would count as outside.
+Degenerate triangles carry no surface, and duplicates count twice in the winding number and
+in the cotangent Laplacian. The SDFs and the eigenbasis are therefore computed on a cleaned
+copy of the faces; vertices, their order and the faces written on export are never changed.
 """
 
 from __future__ import annotations

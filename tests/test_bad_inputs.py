@@ -219,6 +219,12 @@ def test_inconsistent_and_inverted_orientation_give_the_same_sdfs():
     messy[flip] = messy[flip][:, ::-1]
     opts = mm.RegistrationOptions(source_sign="winding", **FAST)
     clean = mm.Registration((V, F), (target, F), opts)
+    # without the repair, the winding-number sign would be wrong at many grid points
+    from morphmodes_vol.sdf.source import inside
+
+    truth = inside(clean.Y, F, clean.Q, "winding")
+    assert truth.any() and (inside(clean.Y, messy, clean.Q, "winding") != truth).mean() > 0.03
+    assert not inside(clean.Y, F[:, ::-1], clean.Q, "winding").any()  # inside out: all "outside"
     for G in (messy, F[:, ::-1]):  # patches flipped; the whole mesh inside out
         reg = mm.Registration((V, G), (target, G), opts)
         np.testing.assert_array_equal(reg.target_sdf_faces, F)
