@@ -162,12 +162,12 @@ def test_too_large_grid_is_refused_before_any_heavy_work(monkeypatch):
     assert "memory_limit_gb" in message and "x1024 quadrature grid" in message
 
 
-def test_vertex_count_enters_the_estimate_and_the_limit_is_an_option(monkeypatch):
+def test_vertex_count_enters_the_estimate_and_the_limit_is_an_option():
     V, F = icosphere(5)  # 10242 vertices
     big = dict(grid=8, modes=40)
     with pytest.raises(OptionError, match=r"source \(10242 vertices\) .* above the limit of 0.26 GB"):
         mm.Registration((V, F), (V * 1.1, F), mm.RegistrationOptions(memory_limit_gb=0.26, **big))
-    # the same mesh passes a limit 20 MB higher: the vertices and modes account for it
+    # the 10242 vertices and 40 modes account for more than 20 MB of the estimate
     from morphmodes_vol.limits import estimate_memory
 
     small_mesh = estimate_memory(42, 80, 80, 40, 8**3, 8**3).total
