@@ -66,6 +66,8 @@ def _options_from_args(args) -> RegistrationOptions:
         changes["max_iterations"] = args.max_iterations
     if args.preconditioner is not None:
         changes["preconditioner"] = args.preconditioner
+    if args.memory_limit is not None:
+        changes["memory_limit_gb"] = None if args.memory_limit <= 0 else args.memory_limit
     return RegistrationOptions().replace(**changes)
 
 
@@ -82,6 +84,8 @@ def _add_common(p: argparse.ArgumentParser, default_grid: int, default_modes: in
     p.add_argument("--preconditioner", choices=list(PRECONDITIONERS), default=None,
                    help="'block' (default) or the paper's plain gradient step 'none'")
     p.add_argument("--seed", type=int, default=d.seed, help="seed of the eigensolver's start vector")
+    p.add_argument("--memory-limit", type=float, default=None, metavar="GB",
+                   help=f"refuse runs estimated to need more memory (default {d.memory_limit_gb:g}; 0: no limit)")
     p.add_argument("-v", "--verbose", action="store_true", help="log details and show tracebacks")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress display")
 
@@ -90,6 +94,8 @@ def _summary(result, paths) -> str:
     m = result.metrics
     lines = [f"status: {result.status}, {result.modes} modes, {result.evaluations} SDF evaluations, "
              f"optimize {result.timings['optimize']:.1f}s"]
+    if result.status == "rolled_back":
+        lines.append("a NaN or infinite energy stopped the run: the result is its last good state")
     lines.append(f"SDF residual RMS: {m['initial_sdf_rms']:.4g} -> {m['final_sdf_rms']:.4g} "
                  "(fraction of the scene diagonal)")
     if "ground_truth_error" in m:

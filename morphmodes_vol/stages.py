@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .eigenbasis import mesh_skinning_weights
+from .repair import sdf_faces
 from .mesh import Normalization, joint_normalization
 from .sdf import DenseTargetSDF, Grid
 from .sdf.source import signed_distance
@@ -92,7 +93,8 @@ def source_eigenbasis(V: np.ndarray, F: np.ndarray, modes: int, seed: int = 0) -
     (66, 3)
     """
     frame = joint_normalization(V)
-    W, lam = mesh_skinning_weights(frame.apply(V), F, modes, seed=seed)
+    Vn = frame.apply(V)
+    W, lam = mesh_skinning_weights(Vn, sdf_faces(Vn, F, "source"), modes, seed=seed)
     return SourceEigenbasis(W, lam, frame)
 
 
@@ -168,6 +170,7 @@ def target_field(V: np.ndarray, F: np.ndarray, resolution: int, padding: float) 
     frame = joint_normalization(V)
     Vn = frame.apply(V)
     grid = Grid.covering(Vn.min(axis=0), Vn.max(axis=0), resolution, padding)
+    F = sdf_faces(Vn, F, "target")  # as Registration: no degenerate/duplicate, oriented
     sdf = DenseTargetSDF.from_mesh(Vn, F, grid)
     log.debug("target field: %s nodes", grid.shape)
     return TargetField(sdf, Vn, np.asarray(F, dtype=np.int64), frame)

@@ -31,8 +31,8 @@ __all__ = ["optimize_adaptive", "OptimizationHistory", "ProgressEvent", "Status"
 
 log = logging.getLogger(__name__)
 
-Status = Literal["converged", "stage_cap", "max_iterations"]
-StageEnd = Literal["stalled", "line_search", "iteration_cap", "max_iterations"]
+Status = Literal["converged", "stage_cap", "max_iterations", "rolled_back"]
+StageEnd = Literal["stalled", "line_search", "iteration_cap", "max_iterations", "fault"]
 
 
 @dataclass(frozen=True)
@@ -66,7 +66,8 @@ class OptimizationHistory:
         Index into ``step_rms`` where each stage (1, 2, ... modes) began.
     stage_ends : list of str
         Why each stage ended: ``stalled``, ``line_search``, ``iteration_cap``,
-        ``max_iterations``.
+        ``max_iterations``, ``fault`` (a NaN or infinite energy or gradient blocked
+        progress; the run stops there).
     stage_seconds : list of float
         Wall time of each stage.
     stage_evaluations : list of int
@@ -109,10 +110,13 @@ class AdaptiveResult:
         ``basis.deform(T)``.
     final : EnergyEvaluation
     history : OptimizationHistory
-    status : {"converged", "stage_cap", "max_iterations"}
+    status : {"converged", "stage_cap", "max_iterations", "rolled_back"}
         ``converged``: every stage ended by the stall test or a line search that found no
         decrease; ``stage_cap``: at least one stage was cut by ``max_iterations_per_stage``;
-        ``max_iterations``: the run was cut by ``max_iterations`` before ``m_max`` modes.
+        ``max_iterations``: the run was cut by ``max_iterations`` before ``m_max`` modes;
+        ``rolled_back``: a NaN or infinite energy, gradient or direction stopped the run,
+        which returns its last good state (the last accepted step; the rest pose when the
+        very first evaluation was not finite).
     """
 
     T: np.ndarray
@@ -121,6 +125,11 @@ class AdaptiveResult:
     initial: EnergyEvaluation
     history: OptimizationHistory
     status: Status
+
+
+def _finite(ev: EnergyEvaluation) -> bool:
+    """Energy and gradient are free of NaN and infinity."""
+    return bool(np.isfinite(ev.energy) and np.isfinite(ev.gradient).all())
 
 
 def _precondition(grad: np.ndarray, basis: LBSBasis, kind: str) -> np.ndarray:
@@ -170,6 +179,9 @@ def optimize_adaptive(
     T = np.zeros((0, 3, 4))
     iteration = 0
     status: Status = "converged"
+    if not _finite(current):
+        log.warning("the energy at the rest pose is not finite: nothing to optimize")
+        m_max, status, T = 0, "rolled_back", np.zeros((1, 3, 4))
 
     def report(modes: int, stage_iteration: int, step_rms: float, eps: float) -> None:
         if progress is not None:
@@ -206,6 +218,9 @@ def optimize_adaptive(
             grad = basis.pullback(current.gradient, m)  # B_m^T dE/dx
             direction = _precondition(grad, basis, options.preconditioner)
             slope = float(np.sum(grad * direction))
+            if not np.isfinite(slope):
+                end = "fault"
+                break
             if not slope < 0:
                 end = "line_search"
                 break
@@ -216,8 +231,15 @@ def optimize_adaptive(
             cap = options.max_step / dir_rms  # step length that moves vertices by max_step RMS
             alpha = cap if alpha is None else min(alpha, cap)
 
+            faults = []
+
             def trial(a: float, T=T, direction=direction):
-                ev = energy.evaluate(basis.deform(T + a * direction))
+                # never accept (nor hand to the SDF queries) anything non-finite
+                X = basis.deform(T + a * direction)
+                ev = energy.evaluate(X) if np.isfinite(X).all() else None
+                if ev is None or not _finite(ev):
+                    faults.append(a)
+                    return float("inf"), ev
                 return ev.energy, ev
 
             ls = armijo_backtracking(
@@ -230,7 +252,8 @@ def optimize_adaptive(
                 max_trials=options.max_backtracks,
             )
             if not ls.accepted:
-                end = "line_search"
+                # a fault when even the shortest trial was not finite
+                end = "fault" if faults and faults[-1] == ls.step else "line_search"
                 break
             T = T + ls.step * direction
             current = ls.state
@@ -256,8 +279,14 @@ def optimize_adaptive(
         if end == "max_iterations":
             status = "max_iterations"
             break
+        if end == "fault":  # current and T are still the last good (accepted) state
+            log.warning("non-finite energy or gradient in stage %d: rolled back to the last "
+                        "accepted step (energy %.6g)", m, current.energy)
+            status = "rolled_back"
+            break
     else:
-        status = "stage_cap" if "iteration_cap" in history.stage_ends else "converged"
+        if status != "rolled_back":
+            status = "stage_cap" if "iteration_cap" in history.stage_ends else "converged"
 
     history.evaluations = energy.evaluations
     return AdaptiveResult(
