@@ -6,7 +6,14 @@ Every error caused by user input is a subclass of :class:`ValueError`, so caller
 
 from __future__ import annotations
 
-__all__ = ["MorphModesError", "MeshValidationError", "MeshLoadError", "OptionError"]
+__all__ = [
+    "MorphModesError",
+    "MeshValidationError",
+    "MeshLoadError",
+    "OptionError",
+    "OpenVDBUnavailableError",
+    "TargetSDFLoadError",
+]
 
 
 class MorphModesError(ValueError):
@@ -23,3 +30,12 @@ class MeshLoadError(MorphModesError):
 
 class OptionError(MorphModesError):
     """An option has an invalid value (out of range, unknown literal)."""
+
+
+class OpenVDBUnavailableError(MorphModesError):
+    """The ``vdb`` target backend was asked for, but ``pyopenvdb`` is missing or unusable
+    (for example under NumPy 2, with which Debian's OpenVDB 10 bindings crash)."""
+
+
+class TargetSDFLoadError(MorphModesError):
+    """A target-SDF file (``.vdb`` or ``.npz``) cannot be read or holds no usable grid."""
