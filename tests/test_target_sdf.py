@@ -58,6 +58,20 @@ def test_vdb_backend_without_openvdb_raises_clear_error(monkeypatch):
         register((V, F), (V * 1.1, F), grid=8, modes=1, target_backend="vdb")
 
 
+def test_cli_vdb_without_openvdb_is_one_line_error(monkeypatch, tmp_path, capsys):
+    import trimesh
+
+    from morphmodes_vol.sdf import vdb
+
+    monkeypatch.setattr(vdb.np, "__version__", "2.1.0")
+    V, F = icosphere(1)
+    trimesh.Trimesh(V, F, process=False).export(tmp_path / "t.obj")
+    assert main(["sdf", str(tmp_path / "t.obj"), "-o", str(tmp_path / "t.vdb"), "--resolution", "8"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "NumPy 1.x" in err[0] and "vdb-env" in err[0]
+    assert not (tmp_path / "t.vdb").exists()
+
+
 def test_invalid_backend_and_sign_options():
     with pytest.raises(OptionError, match="target_backend"):
         RegistrationOptions(target_backend="sparse")
@@ -189,6 +203,20 @@ def test_vdb_sample_matches_exact_sphere():
     assert err.max() < 0.01
     assert err.max() <= np.abs(dense.sample(P) - exact).max()
     assert sdf.nbytes > 0
+
+
+@pytest.mark.vdb
+def test_vdb_voxels_sit_on_the_dense_nodes():
+    # build_target_sdf places the voxels on the dense grid's lattice: in the band both
+    # backends hold the distance at the same points (OpenVDB computes it in float32)
+    V, F = icosphere(4)
+    grid = Grid.covering([-1.0] * 3, [1.0] * 3, 40, 0.3)
+    dense = build_target_sdf(V, F, grid, "dense")
+    sdf = build_target_sdf(V, F, grid, "vdb")
+    P = grid.points()
+    near = np.abs(dense.values.ravel()) < 2 * grid.spacing
+    assert near.sum() > 1000
+    np.testing.assert_allclose(sdf.sample(P[near]), dense.values.ravel()[near], atol=0.02 * grid.spacing)
 
 
 @pytest.mark.vdb

@@ -190,7 +190,8 @@ def build_target_sdf(V, F, grid: Grid, backend: TargetBackend = "dense",
     V : (n, 3) float
     F : (m, 3) int
     grid : Grid
-        ``"dense"``: the nodes. ``"vdb"``: only its spacing is used, as the voxel size.
+        ``"dense"``: the nodes. ``"vdb"``: its spacing and origin place the voxels on the same
+        lattice (the band covers what it covers, whatever the grid's extent).
     backend : {"dense", "vdb"}
     sign : {"winding", "raycast"}
         Inside test (negative inside).
@@ -210,7 +211,8 @@ def build_target_sdf(V, F, grid: Grid, backend: TargetBackend = "dense",
     if backend == "vdb":
         from .vdb import VDBTargetSDF
 
-        return VDBTargetSDF.from_mesh(V, F, grid.spacing, half_width=half_width, sign=sign)
+        return VDBTargetSDF.from_mesh(V, F, grid.spacing, half_width=half_width, sign=sign,
+                                      origin=grid.origin)
     raise OptionError(f"target backend {backend!r}: expected one of {TARGET_BACKENDS}")
 
 

@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import OpenVDBUnavailableError, OptionError, TargetSDFLoadError
+from .grid import Grid, trilinear_sample
 from .source import SignMethod, inside, signed_distance
 
 __all__ = ["VDBTargetSDF", "check_openvdb"]
@@ -130,7 +131,7 @@ class VDBTargetSDF:
 
     @classmethod
     def from_mesh(cls, V, F, voxel_size: float, half_width: float = 3.0,
-                  sign: SignMethod = "winding") -> "VDBTargetSDF":
+                  sign: SignMethod = "winding", origin=(0.0, 0.0, 0.0)) -> "VDBTargetSDF":
         """Narrow-band level set of the mesh ``(V, F)``.
 
         Parameters
@@ -138,21 +139,25 @@ class VDBTargetSDF:
         V : (n, 3) float
         F : (m, 3) int
         voxel_size : float
-            Edge of a voxel; voxel ``(i, j, k)`` sits at ``voxel_size * (i, j, k)``.
+            Edge of a voxel; voxel ``(i, j, k)`` sits at ``origin + voxel_size * (i, j, k)``.
         half_width : float
             Band half width in voxels (OpenVDB's default is 3).
         sign : {"winding", "raycast"}
             ``"winding"`` recomputes the sign of every band voxel from the generalized
             winding number (robust to holes); ``"raycast"`` keeps OpenVDB's flood-fill sign.
+        origin : (3,) float
+            Position of voxel ``(0, 0, 0)``; :func:`~morphmodes_vol.sdf.build_target_sdf`
+            passes the dense grid's origin, so the voxels sit on the dense backend's nodes.
         """
         vdb = check_openvdb()
         if not voxel_size > 0 or not half_width >= 1:
             raise OptionError(f"need voxel_size > 0 and half_width >= 1, got {voxel_size}, {half_width}")
         V = np.ascontiguousarray(V, dtype=np.float64)
         F = np.ascontiguousarray(F, dtype=np.int64)
+        xform = vdb.createLinearTransform(voxelSize=float(voxel_size))
+        xform.translate(tuple(float(c) for c in origin))
         grid = vdb.FloatGrid.createLevelSetFromPolygons(
-            V.astype(np.float32), triangles=F.astype(np.int32),
-            transform=vdb.createLinearTransform(voxelSize=float(voxel_size)),
+            V.astype(np.float32), triangles=F.astype(np.int32), transform=xform,
             halfWidth=float(half_width),
         )
         grid.name = "surface"
@@ -215,11 +220,10 @@ class VDBTargetSDF:
         Trilinear interpolation of the voxels where all eight corners lie in the band, the
         exact signed distance of the surface mesh elsewhere (see the module docstring).
         """
-        P = (np.asarray(points, dtype=np.float64) - self.origin) / self.voxel_size
-        i0 = np.floor(P).astype(np.int64)
-        t = P - i0
-        out = np.empty(P.shape[0])
-        band = np.zeros(P.shape[0], dtype=bool)
+        points = np.asarray(points, dtype=np.float64)
+        i0 = np.floor((points - self.origin) / self.voxel_size).astype(np.int64)
+        out = np.empty(points.shape[0])
+        band = np.zeros(points.shape[0], dtype=bool)
         near = np.all((i0 >= self._active_lo) & (i0 < self._active_hi), axis=1)
         idx = np.flatnonzero(near)
         if idx.size:
@@ -229,21 +233,16 @@ class VDBTargetSDF:
                 sel = idx[inverse == b]
                 start = key * _BLOCK
                 block = _copy_block(self.grid, start, (_BLOCK + 1,) * 3)
-                x, y, z = (i0[sel] - start).T
-                tx, ty, tz = t[sel].T
-                c = [block[x + dx, y + dy, z + dz] for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)]
-                inband = np.all(np.abs(np.stack(c)) < self.background, axis=0)
-                c00 = c[0] * (1 - tx) + c[4] * tx  # corners indexed 4*dx + 2*dy + dz
-                c01 = c[1] * (1 - tx) + c[5] * tx
-                c10 = c[2] * (1 - tx) + c[6] * tx
-                c11 = c[3] * (1 - tx) + c[7] * tx
-                out[sel] = (c00 * (1 - ty) + c10 * ty) * (1 - tz) + (c01 * (1 - ty) + c11 * ty) * tz
-                band[sel] = inband
+                local = Grid(origin=self.origin + self.voxel_size * start, spacing=self.voxel_size,
+                             shape=block.shape)
+                out[sel] = trilinear_sample(block, local, points[sel])
+                # in the band when no corner with a nonzero weight lies outside it
+                band[sel] = trilinear_sample(np.abs(block) >= self.background, local, points[sel]) == 0
         far = ~band
         if far.any():
-            out[far] = signed_distance(self.surface_vertices, self.surface_faces,
-                                       np.asarray(points, dtype=np.float64)[far], sign=self.sign).value
-        log.debug("vdb sample: %d points, %d in the band", P.shape[0], int(band.sum()))
+            out[far] = signed_distance(self.surface_vertices, self.surface_faces, points[far],
+                                       sign=self.sign).value
+        log.debug("vdb sample: %d points, %d in the band", points.shape[0], int(band.sum()))
         return out
 
     def surface_bounds(self) -> tuple[np.ndarray, np.ndarray]:
