@@ -109,6 +109,17 @@ def test_dense_round_trip_through_npz(tmp_path):
     assert back.grid.spacing == sdf.grid.spacing and back.grid.shape == sdf.grid.shape
 
 
+def test_loaded_dense_grid_extrapolates_by_the_distance_to_its_box(tmp_path):
+    # f = x - 0.5 on [0, 1]^3: outside the box, a loaded grid adds the distance to the box
+    grid = Grid(origin=np.zeros(3), spacing=0.5, shape=(3, 3, 3))
+    DenseTargetSDF(grid, (grid.points()[:, 0] - 0.5).reshape(grid.shape)).save(tmp_path / "p.npz")
+    sdf = load_target_sdf(tmp_path / "p.npz")
+    P = np.array([[3.0, 0.5, 0.5], [0.75, 0.5, 0.5], [1.0, 4.0, 0.5]])
+    np.testing.assert_allclose(sdf.sample(P), [0.5 + 2.0, 0.25, 0.5 + 3.0])
+    built = DenseTargetSDF(grid, sdf.values)  # a registration's own grid clamps, as before
+    np.testing.assert_allclose(built.sample(P), [0.5, 0.25, 0.5])
+
+
 def test_dense_winding_is_the_default_and_unchanged(lumpy_sphere):
     # the default target of a registration is the dense winding-number grid, as before
     V, F = lumpy_sphere

@@ -93,9 +93,12 @@ class DenseTargetSDF:
     True
     """
 
-    def __init__(self, grid: Grid, values: np.ndarray):
+    def __init__(self, grid: Grid, values: np.ndarray, extrapolate: bool = False):
         self.grid = grid
         self.values = np.asarray(values, dtype=np.float64).reshape(grid.shape)
+        # outside the box: False clamps to the boundary (a registration's own grid covers its
+        # quadrature box); True, for grids read from files, adds the distance to the box
+        self.extrapolate = bool(extrapolate)
 
     @classmethod
     def from_mesh(cls, V, F, grid: Grid, sign: SignMethod = "winding") -> "DenseTargetSDF":
@@ -140,7 +143,7 @@ class DenseTargetSDF:
             )
         if not np.isfinite(values).all():
             raise TargetSDFLoadError(f"{path}: values contain NaN or infinity")
-        return cls(Grid(origin=origin, spacing=spacing, shape=values.shape), values)
+        return cls(Grid(origin=origin, spacing=spacing, shape=values.shape), values, extrapolate=True)
 
     def save(self, path) -> None:
         """Write ``origin``, ``spacing`` and the values (as float32, half the size; the
@@ -153,8 +156,19 @@ class DenseTargetSDF:
         atomic_write_bytes(path, buf.getvalue())
 
     def sample(self, points: np.ndarray) -> np.ndarray:
-        """Trilinear interpolation at ``points (k, 3)``; returns ``(k,)``."""
-        return trilinear_sample(self.values, self.grid, points)
+        """Trilinear interpolation at ``points (k, 3)``; returns ``(k,)``.
+
+        Outside the grid's box: the value at the nearest point of the box, plus (when
+        ``extrapolate``, as for a grid read by :meth:`load`, which need not cover the
+        registration's box) the distance to that point, an upper bound of the true distance
+        outside a surface the box contains.
+        """
+        values = trilinear_sample(self.values, self.grid, points)
+        if self.extrapolate:
+            points = np.asarray(points, dtype=np.float64)
+            hi = self.grid.origin + self.grid.spacing * (np.asarray(self.grid.shape) - 1)
+            values = values + np.linalg.norm(points - np.clip(points, self.grid.origin, hi), axis=1)
+        return values
 
     def surface_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Bounding box of the zero level set of the trilinear field along the grid edges
