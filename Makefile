@@ -1,5 +1,5 @@
 # Thin aliases of dev.sh (which works without make too).
-.PHONY: setup demo test lion-table
+.PHONY: setup demo test lion-table vdb-env test-vdb
 setup:
 	bash dev.sh setup
 demo:
@@ -8,3 +8,7 @@ test:
 	bash dev.sh test
 lion-table: setup
 	.venv/bin/python scripts/lion_table.py
+vdb-env:
+	bash dev.sh vdb-env
+test-vdb:
+	bash dev.sh test-vdb

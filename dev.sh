@@ -3,6 +3,8 @@
 #   bash dev.sh demo    set up .venv if needed, register the built-in capsule pair -> out/demo
 #   bash dev.sh test    set up .venv if needed, run the test suite (pytest)
 #   bash dev.sh setup   only set up
+#   bash dev.sh vdb-env set up .venv-vdb: the OpenVDB-capable environment (see vdb_env below)
+#   bash dev.sh test-vdb set up .venv-vdb if needed, run the OpenVDB tests (pytest -m vdb)
 # Set-up: checks Python >= 3.10, installs the system packages Open3D and venv need when
 # missing (as root; otherwise prints the exact command), creates .venv and installs the
 # package with its test extras. It is skipped when pyproject.toml has not changed.
@@ -26,15 +28,19 @@ need_apt() {  # need_apt PACKAGE... : install with apt-get as root, else explain
   fi
 }
 
-setup() {
-  command -v "$PY" >/dev/null 2>&1 || die "python3 not found; install Python 3.10 or newer"
-  "$PY" -c 'import sys; sys.exit(sys.version_info < (3, 10))' \
-    || die "Python 3.10 or newer is needed, found $("$PY" --version 2>&1)"
+need_libusb() {
   # Open3D's wheel links libusb-1.0 (it fails to import without it).
   # (ldconfig lives in /sbin, which is not on a normal user's PATH on Debian)
   if ! { /sbin/ldconfig -p 2>/dev/null || ldconfig -p 2>/dev/null; } | grep -q 'libusb-1\.0\.so\.0'; then
     need_apt libusb-1.0-0
   fi
+}
+
+setup() {
+  command -v "$PY" >/dev/null 2>&1 || die "python3 not found; install Python 3.10 or newer"
+  "$PY" -c 'import sys; sys.exit(sys.version_info < (3, 10))' \
+    || die "Python 3.10 or newer is needed, found $("$PY" --version 2>&1)"
+  need_libusb
   if [ ! -x "$VENV/bin/python" ]; then
     if ! "$PY" -c 'import ensurepip, venv' >/dev/null 2>&1; then
       ver=$("$PY" -c 'import sys; print(f"{sys.version_info[0]}.{sys.version_info[1]}")')
@@ -52,11 +58,54 @@ setup() {
   fi
 }
 
+# The OpenVDB backend needs Debian's python3-openvdb (PyPI's pyopenvdb has no wheel for
+# Python 3.11), whose extension is built against NumPy 1.x: with NumPy 2 it crashes the
+# process. So a second venv, $VDB_VENV, pinned to NumPy < 2, sees the system pyopenvdb
+# module through a .pth file. Fails loudly when any step is impossible.
+VDB_VENV="${VDB_VENV:-.venv-vdb}"
+VDB_DIST=/usr/lib/python3/dist-packages
+vdb_env() {
+  need_libusb
+  if ! ls "$VDB_DIST"/pyopenvdb*.so >/dev/null 2>&1; then
+    need_apt python3-openvdb
+  fi
+  so=$(ls "$VDB_DIST"/pyopenvdb*.so | head -n 1)
+  [ -n "$so" ] || die "python3-openvdb installed no pyopenvdb module in $VDB_DIST"
+  # the extension is built for Debian's python3; the venv must use the same minor version
+  tag=$(basename "$so" | sed -n 's/^pyopenvdb\.cpython-\([0-9]*\)-.*/\1/p')
+  vpy="${VDB_PYTHON:-python3.${tag#3}}"
+  command -v "$vpy" >/dev/null 2>&1 || vpy=/usr/bin/python3
+  [ "$("$vpy" -c 'import sys; print(f"{sys.version_info[0]}{sys.version_info[1]}")')" = "$tag" ] \
+    || die "$so is built for CPython $tag; set VDB_PYTHON to a Python of that version"
+  if [ ! -x "$VDB_VENV/bin/python" ]; then
+    if ! "$vpy" -c 'import ensurepip, venv' >/dev/null 2>&1; then
+      ver=$("$vpy" -c 'import sys; print(f"{sys.version_info[0]}.{sys.version_info[1]}")')
+      need_apt "python${ver}-venv" || need_apt python3-venv
+    fi
+    "$vpy" -m venv "$VDB_VENV"
+  fi
+  site=$("$VDB_VENV/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
+  # only the one module, not all of dist-packages (which would shadow the venv's packages)
+  mkdir -p "$VDB_VENV/system-openvdb"
+  ln -sf "$so" "$VDB_VENV/system-openvdb/"
+  echo "$(cd "$VDB_VENV/system-openvdb" && pwd)" > "$site/system-openvdb.pth"
+  stamp="$VDB_VENV/.installed"
+  if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ] || [ .ci/vdb-constraints.txt -nt "$stamp" ]; then
+    "$VDB_VENV/bin/python" -m pip install -q --upgrade pip
+    "$VDB_VENV/bin/python" -m pip install -q -c .ci/vdb-constraints.txt -e '.[test,plot]'
+    touch "$stamp"
+  fi
+  "$VDB_VENV/bin/python" -c 'from morphmodes_vol.sdf.vdb import check_openvdb; check_openvdb(); import open3d, igl, trimesh, scipy' \
+    || die "the OpenVDB environment $VDB_VENV does not work; see the error above"
+}
+
 cmd="${1:-}"
 shift || true
 case "$cmd" in
   setup) setup ;;
   demo) setup; exec "$VENV/bin/morphmodes-vol" demo "$@" ;;
   test) setup; exec "$VENV/bin/python" -m pytest "$@" ;;
-  *) die "usage: bash dev.sh {demo|test|setup} [arguments passed on]" ;;
+  vdb-env) vdb_env ;;
+  test-vdb) vdb_env; MORPHMODES_REQUIRE_VDB=1 exec "$VDB_VENV/bin/python" -m pytest -m vdb "$@" ;;
+  *) die "usage: bash dev.sh {demo|test|setup|vdb-env|test-vdb} [arguments passed on]" ;;
 esac

@@ -1,4 +1,4 @@
-"""The ``morphmodes-vol`` command line: ``register``, ``demo``, ``run``.
+"""The ``morphmodes-vol`` command line: ``register``, ``demo``, ``run``, ``sdf``.
 
 Errors caused by the input (a bad mesh file, an invalid option) print one line on stderr
 and exit with code 2; ``-v`` shows the traceback too.
@@ -16,7 +16,8 @@ import numpy as np
 
 from .errors import MorphModesError
 from .export import MESH_FORMATS, write_outputs
-from .options import PRECONDITIONERS, RegistrationOptions
+from .options import PRECONDITIONERS, SIGN_METHODS, RegistrationOptions
+from .sdf.target import TARGET_BACKENDS, TARGET_SDF_SUFFIXES
 
 __all__ = ["main"]
 
@@ -68,6 +69,10 @@ def _options_from_args(args) -> RegistrationOptions:
         changes["preconditioner"] = args.preconditioner
     if args.memory_limit is not None:
         changes["memory_limit_gb"] = None if args.memory_limit <= 0 else args.memory_limit
+    if args.target_backend is not None:
+        changes["target_backend"] = args.target_backend
+    if args.target_sign is not None:
+        changes["target_sign"] = args.target_sign
     return RegistrationOptions().replace(**changes)
 
 
@@ -86,8 +91,19 @@ def _add_common(p: argparse.ArgumentParser, default_grid: int, default_modes: in
     p.add_argument("--seed", type=int, default=d.seed, help="seed of the eigensolver's start vector")
     p.add_argument("--memory-limit", type=float, default=None, metavar="GB",
                    help=f"refuse runs estimated to need more memory (default {d.memory_limit_gb:g}; 0: no limit)")
+    _add_target_sdf_args(p)
     p.add_argument("-v", "--verbose", action="store_true", help="log details and show tracebacks")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress display")
+
+
+def _add_target_sdf_args(p: argparse.ArgumentParser) -> None:
+    d = RegistrationOptions()
+    p.add_argument("--target-backend", choices=list(TARGET_BACKENDS), default=None,
+                   help=f"target-SDF storage: dense grid or narrow-band OpenVDB level set "
+                        f"(default {d.target_backend}; vdb needs `bash dev.sh vdb-env`)")
+    p.add_argument("--target-sign", choices=list(SIGN_METHODS), default=None,
+                   help=f"inside test of the target: generalized winding number (robust to holes) "
+                        f"or ray parity (default {d.target_sign})")
 
 
 def _summary(result, paths) -> str:
@@ -214,6 +230,30 @@ def cmd_run(args) -> int:
     print(f"{counts['ok']} registered, {counts['skipped']} already complete, {counts['failed']} failed "
           f"in {run.seconds:.1f}s; summary: " + ", ".join(str(p) for p in run.paths.values()))
     return 1 if run.failed else 0
+def cmd_sdf(args) -> int:
+    from .mesh import as_mesh, bbox_diagonal
+    from .sdf import Grid, build_target_sdf
+
+    out = Path(args.output)
+    backend = TARGET_SDF_SUFFIXES.get(out.suffix.lower())
+    if backend is None:
+        raise MorphModesError(
+            f"{out}: the output must end in one of {sorted(TARGET_SDF_SUFFIXES)} "
+            "(.npz: dense grid, .vdb: OpenVDB level set)"
+        )
+    opts = RegistrationOptions()
+    sign = args.target_sign or opts.target_sign
+    V, F = as_mesh(args.mesh, "mesh")
+    pad = args.padding * bbox_diagonal(V)
+    grid = Grid.covering(V.min(axis=0), V.max(axis=0), args.resolution, pad)
+    t = time.perf_counter()
+    sdf = build_target_sdf(V, F, grid, backend, sign, args.half_width)
+    seconds = time.perf_counter() - t
+    sdf.save(out)
+    print(f"{out}: {backend} target SDF of {args.mesh}, voxel size {grid.spacing:.4g} "
+          f"(mesh frame), {sdf.nbytes / 1e6:.1f} MB in memory, {out.stat().st_size / 1e6:.1f} MB "
+          f"on disk, signs by {sign}, built in {seconds:.1f}s")
+    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -226,7 +266,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("register", help="register SOURCE onto TARGET")
     p.add_argument("source", help="source mesh (OBJ, PLY, OFF, STL, ...)")
-    p.add_argument("target", help="target mesh")
+    p.add_argument("target", help="target mesh, or its SDF (.npz dense grid or .vdb level set, "
+                                   "as `morphmodes-vol sdf` writes; no correspondence.npz then)")
     p.add_argument("-o", "--output", required=True, help="output folder")
     p.add_argument("--ground-truth", default=None,
                    help="mesh whose vertex i is where source vertex i should land (adds error metrics)")
@@ -252,6 +293,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-v", "--verbose", action="store_true", help="log details and show tracebacks")
     p.add_argument("-q", "--quiet", action="store_true", help="no per-pair progress lines")
     p.set_defaults(func=cmd_run)
+    p = sub.add_parser("sdf", help="write the target SDF of MESH to a .npz (dense) or .vdb (OpenVDB) file")
+    p.add_argument("mesh", help="the target mesh")
+    p.add_argument("-o", "--output", required=True, help="output file, .npz or .vdb")
+    p.add_argument("--resolution", type=int, default=d.grid,
+                   help=f"nodes (dense) or voxels (vdb) along the longest side of the padded box "
+                        f"(default {d.grid})")
+    p.add_argument("--padding", type=float, default=d.padding,
+                   help=f"margin on every side, fraction of the mesh's diagonal (default {d.padding})")
+    p.add_argument("--half-width", type=float, default=d.vdb_half_width,
+                   help=f"vdb band half width in voxels (default {d.vdb_half_width})")
+    p.add_argument("--target-sign", choices=list(SIGN_METHODS), default=None,
+                   help=f"inside test: winding number or ray parity (default {d.target_sign})")
+    p.add_argument("-v", "--verbose", action="store_true", help="log details and show tracebacks")
+    p.set_defaults(func=cmd_sdf)
     return parser
 
 

@@ -6,7 +6,15 @@ Every error caused by user input is a subclass of :class:`ValueError`, so caller
 
 from __future__ import annotations
 
-__all__ = ["MorphModesError", "MeshValidationError", "MeshLoadError", "OptionError", "PipelineError"]
+__all__ = [
+    "MorphModesError",
+    "MeshValidationError",
+    "MeshLoadError",
+    "OptionError",
+    "PipelineError",
+    "OpenVDBUnavailableError",
+    "TargetSDFLoadError",
+]
 
 
 class MorphModesError(ValueError):
@@ -27,3 +35,12 @@ class OptionError(MorphModesError):
 
 class PipelineError(MorphModesError):
     """A pipeline definition is invalid: unreadable TOML, unknown key, missing file."""
+
+
+class OpenVDBUnavailableError(MorphModesError):
+    """The ``vdb`` target backend was asked for, but ``pyopenvdb`` is missing or unusable
+    (for example under NumPy 2, with which Debian's OpenVDB 10 bindings crash)."""
+
+
+class TargetSDFLoadError(MorphModesError):
+    """A target-SDF file (``.vdb`` or ``.npz``) cannot be read or holds no usable grid."""

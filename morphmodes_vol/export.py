@@ -11,31 +11,32 @@ import os
 import platform
 import sys
 import tempfile
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
 from .errors import OptionError
 
-__all__ = ["write_outputs", "atomic_write_bytes", "library_versions", "MESH_FORMATS"]
+__all__ = ["write_outputs", "atomic_write_bytes", "atomic_path", "library_versions", "MESH_FORMATS"]
 
 log = logging.getLogger(__name__)
 
 MESH_FORMATS = ("ply", "obj", "off", "stl")
 
 
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file in the same folder and a rename,
-    so the file is either absent, the old one, or complete."""
+@contextmanager
+def atomic_path(path: str | os.PathLike, suffix: str = ".tmp") -> Iterator[Path]:
+    """A temporary file name in the folder of ``path``; when the block ends without error
+    the file there replaces ``path`` (with the usual permissions), else it is removed. For
+    writers that need a file name (OpenVDB); :func:`atomic_write_bytes` is built on it."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
+    os.close(fd)
     try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
+        yield Path(tmp)
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the usual permissions
@@ -44,6 +45,16 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary file in the same folder and a rename,
+    so the file is either absent, the old one, or complete."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
 
 
 def _npz_bytes(**arrays: Any) -> bytes:
@@ -106,7 +117,8 @@ def write_outputs(result, outdir: str | os.PathLike, inputs: dict | None = None,
     - ``state.npz``: ``W`` (n, m_max), ``eigenvalues``, ``T`` (m, 3, 4), ``z`` (12m,),
       the normalization and the history arrays;
     - ``correspondence.npz``: ``faces`` (n,) closest target face of every registered vertex
-      and ``barycentrics`` (n, 3) of the closest point on it.
+      and ``barycentrics`` (n, 3) of the closest point on it (not written when the target was
+      given as an SDF grid, which has no faces).
 
     ``report.json`` is written last, so its presence marks a complete output folder.
 
@@ -124,6 +136,8 @@ def write_outputs(result, outdir: str | os.PathLike, inputs: dict | None = None,
         "correspondence": outdir / "correspondence.npz",
         "report": outdir / "report.json",
     }
+    if result.correspondence_faces is None:  # a target given as an SDF grid has no faces
+        paths.pop("correspondence").unlink(missing_ok=True)  # none left from an older run
     atomic_write_bytes(paths["mesh"], mesh_bytes(result.vertices, result.faces, mesh_format))
     h = result.history
     atomic_write_bytes(
@@ -144,10 +158,11 @@ def write_outputs(result, outdir: str | os.PathLike, inputs: dict | None = None,
             evaluations=np.int64(h.evaluations),
         ),
     )
-    atomic_write_bytes(
-        paths["correspondence"],
-        _npz_bytes(faces=result.correspondence_faces, barycentrics=result.correspondence_barycentrics),
-    )
+    if "correspondence" in paths:
+        atomic_write_bytes(
+            paths["correspondence"],
+            _npz_bytes(faces=result.correspondence_faces, barycentrics=result.correspondence_barycentrics),
+        )
     report = {
         "inputs": dict(inputs or {}),
         "source": {

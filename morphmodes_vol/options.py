@@ -15,12 +15,13 @@ from typing import Literal
 
 from .errors import OptionError
 from .sdf.source import SignMethod
+from .sdf.target import TARGET_BACKENDS, TargetBackend
 
-__all__ = ["RegistrationOptions", "Preconditioner", "PRECONDITIONERS"]
+__all__ = ["RegistrationOptions", "Preconditioner", "PRECONDITIONERS", "SIGN_METHODS"]
 
 Preconditioner = Literal["block", "none"]
 PRECONDITIONERS = typing.get_args(Preconditioner)
-_SIGN_METHODS = typing.get_args(SignMethod)
+SIGN_METHODS = typing.get_args(SignMethod)
 
 
 @dataclass(frozen=True)
@@ -74,6 +75,17 @@ class RegistrationOptions:
         Refuse, before any heavy work, a registration whose estimated peak memory
         (:mod:`morphmodes_vol.limits`: vertices, modes, grid sizes) exceeds this many GB;
         ``None`` disables the check. A lion pair at ``grid=64`` is estimated at 0.3 GB.
+    target_backend : {"dense", "vdb"}
+        Storage of the target SDF (docs/target_sdf.md): ``"dense"`` (default) a regular grid;
+        ``"vdb"`` a narrow-band OpenVDB level set with voxel size equal to the dense grid's
+        spacing and the exact distance outside the band (needs ``bash dev.sh vdb-env``).
+        Ignored when the target is given as an SDF file (its type decides).
+    target_sign : {"winding", "raycast"}
+        Inside test of the target, negative inside. ``"winding"`` (default, chosen by the
+        holed-sphere measurement of docs/target_sdf.md): generalized winding number, right
+        behind holes; ``"raycast"``: Open3D ray parity, wrong in a shadow behind each hole.
+    vdb_half_width : float
+        Half width of the ``"vdb"`` band in voxels (OpenVDB's default, 3).
     """
 
     grid: int = 64
@@ -93,6 +105,9 @@ class RegistrationOptions:
     occupancy_samples: int = 1
     seed: int = 0
     memory_limit_gb: float | None = 8.0
+    target_backend: TargetBackend = "dense"
+    target_sign: SignMethod = "winding"
+    vdb_half_width: float = 3.0
 
     def __post_init__(self) -> None:
         def need(cond: bool, name: str, what: str) -> None:
@@ -101,7 +116,8 @@ class RegistrationOptions:
                     f"option {name}={getattr(self, name)!r} is invalid: expected {what}"
                 )
 
-        for name in ("padding", "stall_start", "stall_end", "max_step", "armijo", "backtrack"):
+        for name in ("padding", "stall_start", "stall_end", "max_step", "armijo", "backtrack",
+                     "vdb_half_width"):
             need(_is_real(getattr(self, name)), name, "a finite number")
         need(self.memory_limit_gb is None or (_is_real(self.memory_limit_gb) and self.memory_limit_gb > 0),
              "memory_limit_gb", "None or a positive number of GB")
@@ -126,10 +142,13 @@ class RegistrationOptions:
              "a positive integer")
         need(self.preconditioner in PRECONDITIONERS, "preconditioner",
              f"one of {PRECONDITIONERS}")
-        need(self.source_sign in _SIGN_METHODS, "source_sign", f"one of {_SIGN_METHODS}")
+        need(self.source_sign in SIGN_METHODS, "source_sign", f"one of {SIGN_METHODS}")
         need(_is_int(self.occupancy_samples) and self.occupancy_samples >= 1
              and self.occupancy_samples % 2 == 1, "occupancy_samples", "a positive odd integer")
         need(_is_int(self.seed) and self.seed >= 0, "seed", "a non-negative integer")
+        need(self.target_backend in TARGET_BACKENDS, "target_backend", f"one of {TARGET_BACKENDS}")
+        need(self.target_sign in SIGN_METHODS, "target_sign", f"one of {SIGN_METHODS}")
+        need(1.0 <= self.vdb_half_width <= 64.0, "vdb_half_width", "a float in [1, 64]")
 
     @property
     def resolved_target_grid(self) -> int:

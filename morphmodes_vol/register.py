@@ -23,7 +23,7 @@ from .limits import check_memory, estimate_memory
 from .options import RegistrationOptions
 from .repair import sdf_faces
 from .optimize import OptimizationHistory, ProgressEvent, optimize_adaptive
-from .sdf import DenseTargetSDF, Grid, closest_points
+from .sdf import Grid, TargetSDF, build_target_sdf, closest_points, is_target_sdf_path, load_target_sdf
 from .stages import SourceEigenbasis, TargetField
 
 __all__ = ["register", "Registration", "RegistrationResult", "ground_truth_error"]
@@ -87,9 +87,10 @@ class RegistrationResult:
         ``correspondence``.
     metrics : dict of str to float
         Energies, RMS SDF residuals, and ground-truth errors when a ground truth was given.
-    correspondence_faces : (n,) int64
-        For every registered vertex, the closest target face.
-    correspondence_barycentrics : (n, 3) float64
+    correspondence_faces : (n,) int64 or None
+        For every registered vertex, the closest target face (``None`` when the target was
+        given as an SDF grid: it has no faces).
+    correspondence_barycentrics : (n, 3) float64 or None
         Barycentric coordinates of the closest point on that face.
     normalization : Normalization
         The joint similarity from the original to the normalized frame.
@@ -106,8 +107,8 @@ class RegistrationResult:
     status: str
     timings: dict
     metrics: dict
-    correspondence_faces: np.ndarray
-    correspondence_barycentrics: np.ndarray
+    correspondence_faces: np.ndarray | None
+    correspondence_barycentrics: np.ndarray | None
     normalization: Normalization
     options: RegistrationOptions
     target_vertices: np.ndarray = field(repr=False, default=None)
@@ -130,7 +131,13 @@ class Registration:
 
     Parameters
     ----------
-    source, target : path, trimesh.Trimesh or (V, F) tuple
+    source : path, trimesh.Trimesh or (V, F) tuple
+    target : path, trimesh.Trimesh, (V, F) tuple, target-SDF file or TargetSDF
+        A mesh, or its SDF: a ``.npz``/``.vdb`` path (:func:`~morphmodes_vol.sdf.load_target_sdf`)
+        or a :class:`~morphmodes_vol.sdf.TargetSDF`. A target given as an SDF has no vertices:
+        the joint normalization uses the box of its zero level set
+        (``surface_bounds()``) in place of the target's vertices, the SDF is sampled in its own
+        frame (``g = scale * sdf(undo(Q))``), and the result has no correspondence.
     options : RegistrationOptions, optional
     eigenbasis : SourceEigenbasis, optional
         A precomputed eigenbasis of this source (:func:`morphmodes_vol.stages.source_eigenbasis`,
@@ -158,32 +165,41 @@ class Registration:
         # 4 vertices: the least that determines the affine map of the first mode, and the
         # least that encloses a volume (a target needs an inside for its signed distance)
         self.source_vertices, self.source_faces = as_mesh(source, "source", min_vertices=4)
-        self.target_vertices, self.target_faces = as_mesh(target, "target", min_vertices=4)
+        grid_target = _as_target_sdf(target, self.options)
+        if grid_target is None:
+            self.target_vertices, self.target_faces = as_mesh(target, "target", min_vertices=4)
+            target_box = self.target_vertices
+        else:
+            # an SDF has no vertices: its zero level set's box stands in for them
+            self.target_vertices = self.target_faces = None
+            target_box = np.stack(grid_target.surface_bounds())
         if self.options.modes > self.source_vertices.shape[0]:
             raise OptionError(
                 f"modes={self.options.modes} exceeds the source's "
                 f"{self.source_vertices.shape[0]} vertices"
             )
-        self.normalization = joint_normalization(self.source_vertices, self.target_vertices)
+        self.normalization = joint_normalization(self.source_vertices, target_box)
         self.X0 = self.normalization.apply(self.source_vertices)
-        self.Y = self.normalization.apply(self.target_vertices)
-        lo = np.minimum(self.X0.min(axis=0), self.Y.min(axis=0))
-        hi = np.maximum(self.X0.max(axis=0), self.Y.max(axis=0))
+        self.Y = None if grid_target is not None else self.normalization.apply(self.target_vertices)
+        Yb = self.normalization.apply(target_box)
+        lo = np.minimum(self.X0.min(axis=0), Yb.min(axis=0))
+        hi = np.maximum(self.X0.max(axis=0), Yb.max(axis=0))
         pad = self.options.padding * float(np.linalg.norm(hi - lo))
         self.quadrature = Grid.covering(lo, hi, self.options.grid, pad)
         self.target_grid = Grid.covering(lo, hi, self.options.resolved_target_grid, pad)
+        n_target_faces = 0 if self.target_faces is None else len(self.target_faces)
         check_memory(
-            estimate_memory(len(self.source_vertices), len(self.source_faces), len(self.target_faces),
+            estimate_memory(len(self.source_vertices), len(self.source_faces), n_target_faces,
                             self.options.modes, self.quadrature.size, self.target_grid.size),
             self.options.memory_limit_gb,
             f"{_label(source, 'source')} ({len(self.source_vertices)} vertices) onto "
-            f"{_label(target, 'target')} ({len(self.target_faces)} faces) with {self.options.modes} "
+            f"{_label(target, 'target')} ({n_target_faces} faces) with {self.options.modes} "
             f"modes on a {'x'.join(map(str, self.quadrature.shape))} quadrature grid",
         )
         # faces for the SDFs and the eigenbasis: no degenerate or duplicate triangles,
         # consistent orientation (the output keeps the faces as given)
         self.source_sdf_faces = sdf_faces(self.X0, self.source_faces, "source")
-        self.target_sdf_faces = sdf_faces(self.Y, self.target_faces, "target")
+        self.target_sdf_faces = None if self.Y is None else sdf_faces(self.Y, self.target_faces, "target")
         if self.options.source_sign == "raycast" and not _is_closed(self.source_sdf_faces):
             log.warning(
                 "the source mesh is not closed or has non-manifold edges (some edge is not "
@@ -211,16 +227,22 @@ class Registration:
 
         t = time.perf_counter()
         self.Q = self.quadrature.points()
-        if target_sdf is None:
-            self.target_sdf = DenseTargetSDF.from_mesh(self.Y, self.target_sdf_faces, self.target_grid)
-            self.g = self.target_sdf.sample(self.Q)
-        else:
+        if target_sdf is not None:  # a cached field of this target mesh (pipelines)
             self.target_sdf = target_sdf
             self.g = target_sdf.sample(self.Q, self.normalization)
+        elif grid_target is None:
+            o = self.options
+            self.target_sdf = build_target_sdf(self.Y, self.target_sdf_faces, self.target_grid,
+                                               o.target_backend, o.target_sign, o.vdb_half_width)
+            self.g = self.target_sdf.sample(self.Q)
+        else:
+            # the SDF lives in the target's original frame; distances scale with the frame
+            self.target_sdf = grid_target
+            self.g = self.normalization.scale * grid_target.sample(self.normalization.undo(self.Q))
         self.timings["target_sdf"] = time.perf_counter() - t
-        log.info("target SDF on %s nodes, %d quadrature points, %.2fs",
-                 self.target_sdf.sdf.grid.shape if target_sdf is not None else self.target_grid.shape,
-                 self.Q.shape[0], self.timings["target_sdf"])
+        log.info("target SDF (%s, %.1f MB), %d quadrature points, %.2fs",
+                 type(self.target_sdf).__name__, self.target_sdf.nbytes / 1e6, self.Q.shape[0],
+                 self.timings["target_sdf"])
 
     def energy(self) -> SDFEnergy:
         """A fresh Eq. (3) evaluator for this pair (its evaluation counter starts at 0)."""
@@ -258,9 +280,17 @@ class Registration:
         vertices = self.normalization.undo(out.vertices)
 
         t = time.perf_counter()
-        # in the normalized frame (Open3D searches in float32); barycentrics and face ids
-        # are invariant under the similarity, distances scale by 1 / normalization.scale
-        cp = closest_points(self.Y, self.target_faces, out.vertices)
+        if self.Y is not None:
+            # in the normalized frame (Open3D searches in float32); barycentrics and face ids
+            # are invariant under the similarity, distances scale by 1 / normalization.scale
+            cp = closest_points(self.Y, self.target_faces, out.vertices)
+            corr_faces, corr_bary, dist, diag = cp.faces, cp.barycentrics, cp.distance, bbox_diagonal(self.Y)
+        else:
+            # no target faces: the distance is |target SDF| at the registered vertices, over
+            # the diagonal of the zero level set's box (both in the target's frame)
+            corr_faces = corr_bary = None
+            dist = np.abs(self.target_sdf.sample(vertices))
+            diag = float(np.linalg.norm(np.subtract(*self.target_sdf.surface_bounds())))
         timings["correspondence"] = time.perf_counter() - t
 
         metrics = {
@@ -269,7 +299,8 @@ class Registration:
             "initial_sdf_rms": out.initial.rms_residual,
             "final_sdf_rms": out.final.rms_residual,
             "sdf_rms_units": "fraction of the union bounding-box diagonal",
-            "mean_distance_to_target": float(cp.distance.mean() / bbox_diagonal(self.Y)),
+            "mean_distance_to_target": float(dist.mean() / diag),
+            "target_sdf_bytes": int(self.target_sdf.nbytes),
         }
         if metrics["final_sdf_rms"] > 0.5 * metrics["initial_sdf_rms"]:
             log.warning(
@@ -293,13 +324,24 @@ class Registration:
             status=out.status,
             timings=timings,
             metrics=metrics,
-            correspondence_faces=cp.faces,
-            correspondence_barycentrics=cp.barycentrics,
+            correspondence_faces=corr_faces,
+            correspondence_barycentrics=corr_bary,
             normalization=self.normalization,
             options=self.options,
             target_vertices=self.target_vertices,
             target_faces=self.target_faces,
         )
+
+
+def _as_target_sdf(target, options: RegistrationOptions) -> TargetSDF | None:
+    """The target as a loaded SDF, or ``None`` when it is a mesh."""
+    if is_target_sdf_path(target):
+        if options.target_backend != "dense":
+            log.info("target %s is an SDF file: its type decides the backend", target)
+        return load_target_sdf(target, sign=options.target_sign)
+    if hasattr(target, "sample") and hasattr(target, "surface_bounds"):
+        return target
+    return None
 
 
 def register(
@@ -317,7 +359,9 @@ def register(
     Parameters
     ----------
     source, target : path, trimesh.Trimesh or (V, F) tuple
-        Triangle meshes. The source's vertex order is kept.
+        Triangle meshes. The source's vertex order is kept. The target may also be an SDF
+        (``.npz``/``.vdb`` path or :class:`~morphmodes_vol.sdf.TargetSDF`), see
+        :class:`Registration`.
     options : RegistrationOptions, optional
         All tunables; keyword overrides (``grid=48, modes=10``) are applied on top.
     progress : callable, optional

@@ -118,6 +118,11 @@ class TargetField:
     faces: np.ndarray
     frame: Normalization
 
+    @property
+    def nbytes(self) -> int:
+        """Memory of the grid values."""
+        return int(self.sdf.nbytes)
+
     def sample(self, points: np.ndarray, frame: Normalization) -> np.ndarray:
         """Signed distance of the target at ``points (k, 3)`` given in ``frame``, in that
         frame's units; ``(k,)``."""

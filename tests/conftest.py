@@ -2,11 +2,39 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 
 from morphmodes_vol.datasets import shared_data_dir
 from morphmodes_vol.primitives import capsule, icosphere
+
+
+def _openvdb_problem() -> str | None:
+    """Why the vdb backend cannot run here, or ``None`` when it can."""
+    from morphmodes_vol.errors import OpenVDBUnavailableError
+    from morphmodes_vol.sdf.vdb import check_openvdb
+
+    try:
+        check_openvdb()
+    except OpenVDBUnavailableError as exc:
+        return str(exc)
+    return None
+
+
+def pytest_collection_modifyitems(config, items):
+    """Skip ``vdb`` tests where pyopenvdb is unusable, unless MORPHMODES_REQUIRE_VDB=1 (set by
+    ``bash dev.sh test-vdb``), where they run and fail loudly instead."""
+    if not any("vdb" in item.keywords for item in items):
+        return
+    problem = _openvdb_problem()
+    if problem is None or os.environ.get("MORPHMODES_REQUIRE_VDB") == "1":
+        return
+    skip = pytest.mark.skip(reason=f"OpenVDB unusable here: {problem}")
+    for item in items:
+        if "vdb" in item.keywords:
+            item.add_marker(skip)
 
 
 def make_rng(seed: int = 12345) -> np.random.Generator:
