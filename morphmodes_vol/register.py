@@ -19,6 +19,7 @@ from .energy import SDFEnergy
 from .errors import MeshValidationError, OptionError
 from .mesh import MeshLike, Normalization, as_mesh, bbox_diagonal, joint_normalization
 from .options import RegistrationOptions
+from .quadrature import BandEnergy
 from .optimize import OptimizationHistory, ProgressEvent, optimize_adaptive
 from .sdf import DenseTargetSDF, Grid, closest_points
 
@@ -178,8 +179,21 @@ class Registration:
         log.info("target SDF on %s nodes, %d quadrature points, %.2fs",
                  self.target_grid.shape, self.Q.shape[0], self.timings["target_sdf"])
 
-    def energy(self) -> SDFEnergy:
-        """A fresh Eq. (3) evaluator for this pair (its evaluation counter starts at 0)."""
+    def energy(self) -> SDFEnergy | BandEnergy:
+        """A fresh Eq. (3) evaluator for this pair (its evaluation counter starts at 0), on
+        the quadrature ``options.quadrature`` selects."""
+        o = self.options
+        if o.quadrature == "band":
+            h = self.quadrature.spacing
+            return BandEnergy(
+                self.source_faces, self.quadrature, self.g, self.target_sdf.sample,
+                band=o.band_cells * h, factor=o.block_factor, margin=o.band_margin_cells * h,
+                sign=o.source_sign, samples=o.occupancy_samples,
+            )
+        return self.full_energy()
+
+    def full_energy(self) -> SDFEnergy:
+        """Eq. (3) on every node of the quadrature grid (the paper's quadrature)."""
         return SDFEnergy(
             self.source_faces,
             self.Q,

@@ -24,7 +24,8 @@ import numpy as np
 from ..eigenbasis.lbs import LBSBasis
 from ..energy import EnergyEvaluation, SDFEnergy
 from ..errors import OptionError
-from ..options import PRECONDITIONERS, RegistrationOptions
+from ..options import OPTIMIZERS, PRECONDITIONERS, RegistrationOptions
+from .gauss_newton import lm_solve, subspace_metric, subspace_normal_equations
 from .linesearch import armijo_backtracking
 
 __all__ = ["optimize_adaptive", "OptimizationHistory", "ProgressEvent", "Status"]
@@ -72,7 +73,10 @@ class OptimizationHistory:
     stage_evaluations : list of int
         Source-SDF evaluations spent in each stage.
     evaluations : int
-        Number of full source-SDF evaluations.
+        Number of source-SDF evaluations.
+    refreshes : int
+        Times an adaptive quadrature was recomputed during the run (each costs one extra
+        evaluation at the same state; see :mod:`morphmodes_vol.quadrature`).
     """
 
     energy: list = field(default_factory=list)
@@ -83,6 +87,7 @@ class OptimizationHistory:
     stage_seconds: list = field(default_factory=list)
     stage_evaluations: list = field(default_factory=list)
     evaluations: int = 0
+    refreshes: int = 0
 
     def to_dict(self) -> dict:
         return {
@@ -94,6 +99,7 @@ class OptimizationHistory:
             "stage_seconds": [float(t) for t in self.stage_seconds],
             "stage_evaluations": [int(k) for k in self.stage_evaluations],
             "evaluations": int(self.evaluations),
+            "refreshes": int(self.refreshes),
         }
 
 
@@ -136,6 +142,107 @@ def _precondition(grad: np.ndarray, basis: LBSBasis, kind: str) -> np.ndarray:
     return -np.linalg.solve(gram + reg, grad.transpose(0, 2, 1)).transpose(0, 2, 1)
 
 
+class _GradientStepper:
+    """Algorithm 1's step: (preconditioned) gradient direction, Armijo backtracking."""
+
+    def __init__(self, energy: SDFEnergy, basis: LBSBasis, options: RegistrationOptions):
+        self.energy, self.basis, self.options = energy, basis, options
+        self.alpha: float | None = None
+
+    def start_stage(self, m: int) -> None:
+        self.alpha = None
+
+    def step(self, T: np.ndarray, current: EnergyEvaluation) -> _Step:
+        basis, options = self.basis, self.options
+        n = basis.X0.shape[0]
+        grad = basis.pullback(current.gradient, T.shape[0])  # B_m^T dE/dx
+        direction = _precondition(grad, basis, options.preconditioner)
+        slope = float(np.sum(grad * direction))
+        if not slope < 0:
+            return _Step(end="line_search")
+        dir_rms = float(np.sqrt(np.sum(basis.displacement(direction) ** 2) / n))
+        if dir_rms == 0:
+            return _Step(end="stalled")
+        cap = options.max_step / dir_rms  # step length that moves vertices by max_step RMS
+        alpha = cap if self.alpha is None else min(self.alpha, cap)
+
+        def trial(a: float):
+            ev = self.energy.evaluate(basis.deform(T + a * direction))
+            return ev.energy, ev
+
+        ls = armijo_backtracking(
+            trial,
+            current.energy,
+            slope,
+            alpha,
+            c=options.armijo,
+            shrink=options.backtrack,
+            max_trials=options.max_backtracks,
+        )
+        if not ls.accepted:
+            return _Step(end="line_search")
+        # warm start: try a longer step next time if this one needed no backtracking
+        self.alpha = ls.step / options.backtrack if ls.trials == 1 else ls.step
+        return _Step(T=T + ls.step * direction, evaluation=ls.state, step_rms=ls.step * dir_rms)
+
+
+class _LevenbergMarquardtStepper:
+    """Our default step: Levenberg-Marquardt on the frozen-correspondence model
+    (:mod:`.gauss_newton`), accepted on the true energy, damping by Nielsen's rule."""
+
+    def __init__(self, energy: SDFEnergy, basis: LBSBasis, options: RegistrationOptions):
+        self.energy, self.basis, self.options = energy, basis, options
+        self.damping = options.lm_damping
+        self.metric: np.ndarray | None = None
+        self.nu = 2.0
+
+    def start_stage(self, m: int) -> None:
+        self.metric = subspace_metric(self.basis, m)
+        # a new mode makes the model richer: relax the damping learned so far
+        self.damping = max(self.damping / 3.0, self.options.lm_damping * 1e-3)
+        self.nu = 2.0
+
+    def step(self, T: np.ndarray, current: EnergyEvaluation) -> _Step:
+        basis, options = self.basis, self.options
+        m = T.shape[0]
+        n = basis.X0.shape[0]
+        model = subspace_normal_equations(current, basis, m, self.energy.F, self.energy.weights)
+        for _ in range(options.max_backtracks):
+            d = lm_solve(model, self.metric, self.damping)
+            rms = float(np.sqrt(d @ self.metric @ d / n))
+            if rms > options.lm_max_step:  # hard trust region on the vertex motion
+                d *= options.lm_max_step / rms
+                rms = options.lm_max_step
+            if rms == 0 or not np.all(np.isfinite(d)):
+                return _Step(end="stalled")
+            predicted = model.predicted_decrease(d)
+            if not predicted > 0:
+                return _Step(end="line_search")
+            trial_T = T + d.reshape(m, 3, 4)
+            ev = self.energy.evaluate(basis.deform(trial_T))
+            rho = (current.energy - ev.energy) / predicted
+            if np.isfinite(ev.energy) and rho > options.armijo:
+                self.damping *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                self.nu = 2.0
+                return _Step(T=trial_T, evaluation=ev, step_rms=rms)
+            self.damping *= self.nu
+            self.nu *= 2.0
+        return _Step(end="line_search")
+
+
+@dataclass
+class _Step:
+    """One iteration's outcome: an accepted step, or why the stage ends."""
+
+    T: np.ndarray | None = None
+    evaluation: EnergyEvaluation | None = None
+    step_rms: float = float("nan")
+    end: StageEnd | None = None
+
+
+_STEPPERS = {"paper": _GradientStepper, "lm": _LevenbergMarquardtStepper}
+
+
 def optimize_adaptive(
     energy: SDFEnergy,
     basis: LBSBasis,
@@ -151,7 +258,10 @@ def optimize_adaptive(
     basis : LBSBasis
         Skinning subspace with at least ``options.modes`` modes.
     options : RegistrationOptions
-        Schedule, line search and preconditioner (see its docstring for units).
+        Optimizer, schedule, line search and preconditioner (see its docstring for units).
+        ``optimizer="paper"`` takes Algorithm 1's gradient steps with a backtracking line
+        search; ``optimizer="lm"`` takes Levenberg-Marquardt steps in the same subspaces and
+        with the same mode schedule (:mod:`.gauss_newton`).
     progress : callable, optional
         Called with a :class:`ProgressEvent` after every accepted step.
 
@@ -162,7 +272,10 @@ def optimize_adaptive(
     t0 = time.perf_counter()
     m_max = min(options.modes, basis.max_modes)
     history = OptimizationHistory()
-    n = basis.X0.shape[0]
+    try:
+        stepper = _STEPPERS[options.optimizer](energy, basis, options)
+    except KeyError:
+        raise OptionError(f"optimizer={options.optimizer!r}: expected one of {OPTIMIZERS}") from None
 
     current = energy.evaluate(basis.X0)
     initial = current
@@ -196,55 +309,31 @@ def optimize_adaptive(
         T = np.concatenate([T, np.zeros((1, 3, 4))])  # z <- [z; 0_12]
         eps = options.stall_threshold(stage)
         history.stage_starts.append(len(history.step_rms))
-        alpha: float | None = None
+        stepper.start_stage(m)
         end: StageEnd = "iteration_cap"
         report(m, 0, float("nan"), eps)
         for stage_iteration in range(1, options.max_iterations_per_stage + 1):
             if iteration >= options.max_iterations:
                 end = "max_iterations"
                 break
-            grad = basis.pullback(current.gradient, m)  # B_m^T dE/dx
-            direction = _precondition(grad, basis, options.preconditioner)
-            slope = float(np.sum(grad * direction))
-            if not slope < 0:
-                end = "line_search"
+            X = basis.deform(T)
+            if energy.refresh(X):  # adaptive quadrature moved: same state, new quadrature
+                current = energy.evaluate(X)
+                history.refreshes += 1
+            out = stepper.step(T, current)
+            if out.end is not None:
+                end = out.end
                 break
-            dir_rms = float(np.sqrt(np.sum(basis.displacement(direction) ** 2) / n))
-            if dir_rms == 0:
-                end = "stalled"
-                break
-            cap = options.max_step / dir_rms  # step length that moves vertices by max_step RMS
-            alpha = cap if alpha is None else min(alpha, cap)
-
-            def trial(a: float, T=T, direction=direction):
-                ev = energy.evaluate(basis.deform(T + a * direction))
-                return ev.energy, ev
-
-            ls = armijo_backtracking(
-                trial,
-                current.energy,
-                slope,
-                alpha,
-                c=options.armijo,
-                shrink=options.backtrack,
-                max_trials=options.max_backtracks,
-            )
-            if not ls.accepted:
-                end = "line_search"
-                break
-            T = T + ls.step * direction
-            current = ls.state
-            step_rms = ls.step * dir_rms  # ||delta x|| as RMS vertex motion
+            previous = current.energy
+            T, current = out.T, out.evaluation
             iteration += 1
             history.energy.append(current.energy)
-            history.step_rms.append(step_rms)
+            history.step_rms.append(out.step_rms)
             history.modes.append(m)
-            report(m, stage_iteration, step_rms, eps)
-            if step_rms < eps:
+            report(m, stage_iteration, out.step_rms, eps)
+            if out.step_rms < eps or previous - current.energy <= options.stall_decrease * previous:
                 end = "stalled"
                 break
-            # warm start: try a longer step next time if this one needed no backtracking
-            alpha = ls.step / options.backtrack if ls.trials == 1 else ls.step
         history.stage_ends.append(end)
         history.stage_seconds.append(time.perf_counter() - stage_t0)
         history.stage_evaluations.append(energy.evaluations - stage_evals)
