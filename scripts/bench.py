@@ -69,7 +69,7 @@ def run_ours(source, target, truth, overrides: dict) -> dict:
         "error": mm.ground_truth_error(result.vertices, truth_V),
         "identity_error": mm.ground_truth_error(reg.source_vertices, truth_V),
         "evaluations": h.evaluations,
-        "refreshes": h.refreshes,
+        "refreshes": len(h.refreshes),
         "steps": len(h.step_rms),
         "modes": result.modes,
         "status": result.status,

@@ -74,9 +74,10 @@ class OptimizationHistory:
         Source-SDF evaluations spent in each stage.
     evaluations : int
         Number of source-SDF evaluations.
-    refreshes : int
-        Times an adaptive quadrature was recomputed during the run (each costs one extra
-        evaluation at the same state; see :mod:`morphmodes_vol.quadrature`).
+    refreshes : list of int
+        Where an adaptive quadrature was recomputed: after ``energy[r]``, so
+        ``energy[r + 1]`` is on a new quadrature and need not be below ``energy[r]``. Each
+        refresh costs one extra evaluation at the same state (:mod:`morphmodes_vol.quadrature`).
     """
 
     energy: list = field(default_factory=list)
@@ -87,7 +88,7 @@ class OptimizationHistory:
     stage_seconds: list = field(default_factory=list)
     stage_evaluations: list = field(default_factory=list)
     evaluations: int = 0
-    refreshes: int = 0
+    refreshes: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return {
@@ -99,7 +100,7 @@ class OptimizationHistory:
             "stage_seconds": [float(t) for t in self.stage_seconds],
             "stage_evaluations": [int(k) for k in self.stage_evaluations],
             "evaluations": int(self.evaluations),
-            "refreshes": int(self.refreshes),
+            "refreshes": [int(r) for r in self.refreshes],
         }
 
 
@@ -148,6 +149,8 @@ class _GradientStepper:
     def __init__(self, energy: SDFEnergy, basis: LBSBasis, options: RegistrationOptions):
         self.energy, self.basis, self.options = energy, basis, options
         self.alpha: float | None = None
+        self.iterations_per_stage = options.max_iterations_per_stage
+        self.stall_decrease = 0.0
 
     def start_stage(self, m: int) -> None:
         self.alpha = None
@@ -192,6 +195,8 @@ class _LevenbergMarquardtStepper:
 
     def __init__(self, energy: SDFEnergy, basis: LBSBasis, options: RegistrationOptions):
         self.energy, self.basis, self.options = energy, basis, options
+        self.iterations_per_stage = options.lm_iterations_per_stage
+        self.stall_decrease = options.lm_stall_decrease
         self.damping = options.lm_damping
         self.metric: np.ndarray | None = None
         self.nu = 2.0
@@ -312,14 +317,14 @@ def optimize_adaptive(
         stepper.start_stage(m)
         end: StageEnd = "iteration_cap"
         report(m, 0, float("nan"), eps)
-        for stage_iteration in range(1, options.max_iterations_per_stage + 1):
+        for stage_iteration in range(1, stepper.iterations_per_stage + 1):
             if iteration >= options.max_iterations:
                 end = "max_iterations"
                 break
             X = basis.deform(T)
             if energy.refresh(X):  # adaptive quadrature moved: same state, new quadrature
                 current = energy.evaluate(X)
-                history.refreshes += 1
+                history.refreshes.append(len(history.energy) - 1)
             out = stepper.step(T, current)
             if out.end is not None:
                 end = out.end
@@ -331,7 +336,7 @@ def optimize_adaptive(
             history.step_rms.append(out.step_rms)
             history.modes.append(m)
             report(m, stage_iteration, out.step_rms, eps)
-            if out.step_rms < eps or previous - current.energy <= options.stall_decrease * previous:
+            if out.step_rms < eps or previous - current.energy <= stepper.stall_decrease * previous:
                 end = "stalled"
                 break
         history.stage_ends.append(end)
