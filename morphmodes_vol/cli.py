@@ -1,4 +1,4 @@
-"""The ``morphmodes-vol`` command line: ``register``, ``demo``.
+"""The ``morphmodes-vol`` command line: ``register``, ``demo``, ``run``.
 
 Errors caused by the input (a bad mesh file, an invalid option) print one line on stderr
 and exit with code 2; ``-v`` shows the traceback too.
@@ -72,6 +72,8 @@ def _options_from_args(args) -> RegistrationOptions:
             changes["quadrature"] = "full"  # the paper's Algorithm 1 on the paper's Eq. (3)
     if args.quadrature is not None:
         changes["quadrature"] = args.quadrature
+    if args.memory_limit is not None:
+        changes["memory_limit_gb"] = None if args.memory_limit <= 0 else args.memory_limit
     return RegistrationOptions().replace(**changes)
 
 
@@ -95,6 +97,8 @@ def _add_common(p: argparse.ArgumentParser, default_grid: int, default_modes: in
     p.add_argument("--preconditioner", choices=list(PRECONDITIONERS), default=None,
                    help="'block' (default) or the paper's plain gradient step 'none'")
     p.add_argument("--seed", type=int, default=d.seed, help="seed of the eigensolver's start vector")
+    p.add_argument("--memory-limit", type=float, default=None, metavar="GB",
+                   help=f"refuse runs estimated to need more memory (default {d.memory_limit_gb:g}; 0: no limit)")
     p.add_argument("-v", "--verbose", action="store_true", help="log details and show tracebacks")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress display")
 
@@ -103,6 +107,8 @@ def _summary(result, paths) -> str:
     m = result.metrics
     lines = [f"status: {result.status}, {result.modes} modes, {result.evaluations} SDF evaluations, "
              f"optimize {result.timings['optimize']:.1f}s"]
+    if result.status == "rolled_back":
+        lines.append("a NaN or infinite energy stopped the run: the result is its last good state")
     lines.append(f"SDF residual RMS: {m['initial_sdf_rms']:.4g} -> {m['final_sdf_rms']:.4g} "
                  "(fraction of the scene diagonal)")
     if "ground_truth_error" in m:
@@ -154,6 +160,75 @@ def cmd_demo(args) -> int:
     return _run((Vs, F), (Vt, Ft), args, inputs, ground_truth=Vt)
 
 
+class PairProgress:
+    """Pipeline progress on stderr. On a terminal: a bar over the pairs with the latest
+    pair's stage, rewritten in place, and one kept line per finished pair; otherwise one line
+    per state change of a pair."""
+
+    def __init__(self, total: int, stream=None, width: int = 20):
+        self.stream = stream or sys.stderr
+        self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+        self.total = total
+        self.width = width
+        self.counts = {"ok": 0, "skipped": 0, "failed": 0}
+        self._shown = 0
+
+    def _head(self) -> str:
+        done = sum(self.counts.values())
+        if not self.tty:
+            return f"[{done}/{self.total}, {self.counts['failed']} failed]"
+        filled = self.width * done // max(self.total, 1)
+        return f"[{'#' * filled}{'.' * (self.width - filled)}] {done}/{self.total}, {self.counts['failed']} failed"
+
+    def event(self, name: str, text: str) -> None:
+        line = f"{self._head()} {name}: {text}"
+        if not self.tty:
+            self.stream.write(line + "\n")
+        else:
+            final = text.startswith(("done", "FAILED", "skipped", "worker lost"))
+            pad = " " * max(self._shown - len(line), 0)
+            self.stream.write("\r" + (f"{name}: {text}" + " " * max(self._shown - len(name) - len(text) - 2, 0)
+                                       + "\n" if final else line + pad))
+            self._shown = 0 if final else len(line)
+        self.stream.flush()
+
+    def result(self, result: dict) -> None:
+        self.counts[result["state"]] += 1
+        if result["state"] == "failed" and "worker lost" in (result.get("error") or ""):
+            self.event(result["name"], result["error"])
+
+    def close(self) -> None:
+        if self.tty and self._shown:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+def cmd_run(args) -> int:
+    from .pipeline import load_pipeline, run_pipeline
+
+    pipeline = load_pipeline(args.pipeline, output=args.output)
+    if args.executor == "dask" and not args.verbose:
+        try:  # Dask's scheduler and nannies log every connection at INFO (set before import)
+            import dask
+
+            dask.config.set({"logging.distributed": "warning"})
+        except ImportError:
+            pass
+    progress = PairProgress(len(pipeline.pairs))
+    print(f"{pipeline.name}: {len(pipeline.pairs)} pairs -> {pipeline.output} "
+          f"(cache {pipeline.cache_dir}, executor {args.executor})", file=sys.stderr)
+    try:
+        run = run_pipeline(pipeline, args.executor, args.workers, args.scheduler,
+                           on_event=None if args.quiet else progress.event, on_result=progress.result)
+    finally:
+        progress.close()
+    print(run.paths["md"].read_text(), end="")
+    counts = progress.counts
+    print(f"{counts['ok']} registered, {counts['skipped']} already complete, {counts['failed']} failed "
+          f"in {run.seconds:.1f}s; summary: " + ", ".join(str(p) for p in run.paths.values()))
+    return 1 if run.failed else 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     d = RegistrationOptions()
     parser = argparse.ArgumentParser(
@@ -177,6 +252,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", default="out/demo", help="output folder (default out/demo)")
     _add_common(p, 48, 12)
     p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("run", help="run a pipeline definition (TOML) over a dataset; exit 1 if a pair failed")
+    p.add_argument("pipeline", help="pipeline definition, e.g. pipelines/lion_poses.toml")
+    p.add_argument("-o", "--output", default=None, help="output folder (default: the definition's 'output')")
+    p.add_argument("--executor", choices=["local", "dask"], default="local",
+                   help="'local' process pool (default) or a Dask cluster")
+    p.add_argument("--workers", type=int, default=None,
+                   help="worker processes (default: the CPU count; 1 runs in this process)")
+    p.add_argument("--scheduler", default=None,
+                   help="Dask scheduler address (tcp://host:8786); default: a LocalCluster")
+    p.add_argument("-v", "--verbose", action="store_true", help="log details and show tracebacks")
+    p.add_argument("-q", "--quiet", action="store_true", help="no per-pair progress lines")
+    p.set_defaults(func=cmd_run)
     return parser
 
 

@@ -6,7 +6,7 @@ Every error caused by user input is a subclass of :class:`ValueError`, so caller
 
 from __future__ import annotations
 
-__all__ = ["MorphModesError", "MeshValidationError", "MeshLoadError", "OptionError"]
+__all__ = ["MorphModesError", "MeshValidationError", "MeshLoadError", "OptionError", "PipelineError"]
 
 
 class MorphModesError(ValueError):
@@ -23,3 +23,7 @@ class MeshLoadError(MorphModesError):
 
 class OptionError(MorphModesError):
     """An option has an invalid value (out of range, unknown literal)."""
+
+
+class PipelineError(MorphModesError):
+    """A pipeline definition is invalid: unreadable TOML, unknown key, missing file."""

@@ -84,6 +84,17 @@ def _digest(*arrays: np.ndarray) -> str:
     return h.hexdigest()[:16]
 
 
+def _finite_or_null(obj: Any) -> Any:
+    """``obj`` with every NaN or infinite float replaced by ``None``, recursively."""
+    if isinstance(obj, float):
+        return obj if np.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite_or_null(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite_or_null(v) for v in obj]
+    return obj
+
+
 def write_outputs(result, outdir: str | os.PathLike, inputs: dict | None = None,
                   mesh_format: str = "ply") -> dict[str, Path]:
     """Write a :class:`~morphmodes_vol.RegistrationResult` to ``outdir``.
@@ -158,6 +169,8 @@ def write_outputs(result, outdir: str | os.PathLike, inputs: dict | None = None,
         "versions": library_versions(),
         "command": sys.argv if inputs and inputs.get("cli") else None,
     }
-    atomic_write_bytes(paths["report"], (json.dumps(report, indent=2) + "\n").encode())
+    # strict JSON: a NaN or infinite figure (a rolled-back run) is written as null
+    text = json.dumps(_finite_or_null(report), indent=2, allow_nan=False)
+    atomic_write_bytes(paths["report"], (text + "\n").encode())
     log.info("wrote %s", ", ".join(str(p) for p in paths.values()))
     return paths

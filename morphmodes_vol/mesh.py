@@ -18,6 +18,7 @@ from .errors import MeshLoadError, MeshValidationError
 
 __all__ = [
     "MeshLike",
+    "MESH_EXTENSIONS",
     "as_mesh",
     "load_mesh",
     "validate_mesh",
@@ -27,6 +28,14 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+# What load_mesh reads (trimesh's mesh readers); other extensions are refused up front.
+MESH_EXTENSIONS = ("obj", "ply", "off", "stl", "glb", "gltf")
+
+NO_FACES = (
+    "no faces (a point cloud?); source and target must be triangle surfaces, since the "
+    "signed distance needs an inside: reconstruct a surface first (e.g. Poisson)"
+)
 
 MeshLike = Union[str, os.PathLike, "trimesh.Trimesh", tuple]  # noqa: F821
 
@@ -38,8 +47,8 @@ def validate_mesh(V, F, name: str = "mesh", min_vertices: int = 3) -> tuple[np.n
     ----------
     V : (n, 3) array_like of float
         Vertex positions.
-    F : (m, 3) array_like of int
-        Triangle vertex indices, 0-based.
+    F : (m, 3) or (m, 4) array_like of int
+        Triangle (or quad) vertex indices, 0-based.
     name : str
         What the mesh is (a file name, ``"source"``), used in error messages.
     min_vertices : int
@@ -50,7 +59,11 @@ def validate_mesh(V, F, name: str = "mesh", min_vertices: int = 3) -> tuple[np.n
     V : (n, 3) float64
         A copy of the vertices (the input is never modified).
     F : (m, 3) int64
-        A copy of the faces.
+        A copy of the faces (``(2 m, 3)`` for quads).
+
+    Quads ``(m, 4)`` are split into triangles ``(a, b, c), (a, c, d)``: all first halves,
+    then all second halves, so ``F`` has ``2 m`` rows (trimesh splits the quads of a file
+    into the same triangles while reading).
 
     Raises
     ------
@@ -82,22 +95,33 @@ def validate_mesh(V, F, name: str = "mesh", min_vertices: int = 3) -> tuple[np.n
             f"{name}: {int(bad.sum())} vertices have NaN or infinite coordinates "
             f"(first: vertex {int(np.flatnonzero(bad)[0])})"
         )
-    F_in = np.asarray(F)
+    try:
+        F_in = np.asarray(F)
+    except ValueError as exc:  # ragged lists of polygons
+        raise MeshValidationError(f"{name}: faces are not a rectangular array ({exc})") from None
     if F_in.size == 0:
-        raise MeshValidationError(f"{name}: the mesh has no faces (a point cloud?)")
-    if F_in.ndim != 2 or F_in.shape[1] != 3:
+        raise MeshValidationError(f"{name}: {NO_FACES}")
+    if F_in.ndim != 2 or F_in.shape[1] not in (3, 4):
         raise MeshValidationError(
-            f"{name}: faces must be triangles with shape (m, 3), got shape {F_in.shape}"
+            f"{name}: faces must be triangles (m, 3) or quads (m, 4), got shape {F_in.shape}"
         )
     if not np.issubdtype(F_in.dtype, np.integer):
-        if not np.issubdtype(F_in.dtype, np.floating) or not np.all(np.mod(F_in, 1) == 0):
+        with np.errstate(invalid="ignore"):  # NaN and inf are not integers either
+            integral = np.issubdtype(F_in.dtype, np.floating) and np.all(np.mod(F_in, 1) == 0)
+        if not integral:
             raise MeshValidationError(f"{name}: face indices must be integers")
+    if not np.all(np.abs(F_in) < 2**62):  # also catches NaN, inf and int64 overflow
+        raise MeshValidationError(f"{name}: face indices must be finite integers")
     F = F_in.astype(np.int64, copy=True)
     if F.min() < 0 or F.max() >= V.shape[0]:
         raise MeshValidationError(
             f"{name}: face indices must lie in [0, {V.shape[0] - 1}], "
             f"found range [{int(F.min())}, {int(F.max())}]"
         )
+    if F.shape[1] == 4:
+        # quads (a b c d) -> triangles (a b c), (a c d), as trimesh does when reading files
+        log.warning("%s: %d quads split into triangles", name, F.shape[0])
+        F = np.concatenate([F[:, [0, 1, 2]], F[:, [0, 2, 3]]])
     return V, F
 
 
@@ -126,19 +150,29 @@ def load_mesh(path: str | os.PathLike, min_vertices: int = 3) -> tuple[np.ndarra
     path = Path(path)
     if not path.is_file():
         raise MeshLoadError(f"{path}: no such file")
+    ext = path.suffix.lower().lstrip(".")
+    if ext not in MESH_EXTENSIONS:
+        raise MeshLoadError(
+            f"{path}: unsupported file extension {path.suffix or '(none)'!r}; "
+            f"mesh files must be one of {', '.join(MESH_EXTENSIONS)}"
+        )
     if path.stat().st_size == 0:
         raise MeshLoadError(f"{path}: the file is empty")
     try:
         # process=False: no merging/reordering; maintain_order=True: the OBJ loader otherwise
         # drops unreferenced vertices, which shifts every later index (vertex order is the
         # ground truth of an evaluation).
-        mesh = trimesh.load(str(path), process=False, force="mesh", maintain_order=True)
+        mesh = trimesh.load(str(path), process=False, maintain_order=True)
+        if isinstance(mesh, trimesh.Scene) and mesh.geometry:  # glTF: one mesh of all parts
+            mesh = trimesh.load(str(path), process=False, force="mesh", maintain_order=True)
     except Exception as exc:  # trimesh raises many types for unreadable files
         raise MeshLoadError(f"{path}: cannot be read as a mesh ({type(exc).__name__}: {exc})") from None
-    if not isinstance(mesh, trimesh.Trimesh):
-        raise MeshLoadError(f"{path}: not a triangle mesh (read a {type(mesh).__name__})")
+    if isinstance(mesh, trimesh.PointCloud) and len(mesh.vertices):
+        raise MeshLoadError(f"{path}: {len(mesh.vertices)} vertices but {NO_FACES}")
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.vertices) == 0:
+        raise MeshLoadError(f"{path}: no vertices found: not a valid {ext.upper()} mesh file")
     if len(mesh.faces) == 0:
-        raise MeshLoadError(f"{path}: the file has no faces (a point cloud?)")
+        raise MeshLoadError(f"{path}: {len(mesh.vertices)} vertices but {NO_FACES}")
     return validate_mesh(mesh.vertices, mesh.faces, name=str(path), min_vertices=min_vertices)
 
 
@@ -156,6 +190,8 @@ def as_mesh(mesh: MeshLike, name: str = "mesh", min_vertices: int = 3) -> tuple[
         return validate_mesh(mesh[0], mesh[1], name=name, min_vertices=min_vertices)
     if hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
         return validate_mesh(mesh.vertices, mesh.faces, name=name, min_vertices=min_vertices)
+    if hasattr(mesh, "vertices") or (isinstance(mesh, np.ndarray) and mesh.ndim == 2):
+        raise MeshValidationError(f"{name}: a set of points: {NO_FACES}")
     raise MeshValidationError(
         f"{name}: expected a file path, a trimesh.Trimesh or a (V, F) tuple, "
         f"got {type(mesh).__name__}"

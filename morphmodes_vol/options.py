@@ -8,6 +8,7 @@ therefore 1% of the size of the scene, whatever the units of the input files.
 from __future__ import annotations
 
 import dataclasses
+import math
 import typing
 from dataclasses import dataclass
 from typing import Literal
@@ -103,6 +104,10 @@ class RegistrationOptions:
         Rays cast (odd; majority vote) by the ``"raycast"`` inside test.
     seed : int
         Seed of the only random choice (the start vector of the sparse eigensolver).
+    memory_limit_gb : float or None
+        Refuse, before any heavy work, a registration whose estimated peak memory
+        (:mod:`morphmodes_vol.limits`: vertices, modes, grid sizes) exceeds this many GB;
+        ``None`` disables the check. A lion pair at ``grid=64`` is estimated at 0.3 GB.
     """
 
     grid: int = 64
@@ -130,6 +135,7 @@ class RegistrationOptions:
     source_sign: SignMethod = "raycast"
     occupancy_samples: int = 1
     seed: int = 0
+    memory_limit_gb: float | None = 8.0
 
     def __post_init__(self) -> None:
         def need(cond: bool, name: str, what: str) -> None:
@@ -138,6 +144,12 @@ class RegistrationOptions:
                     f"option {name}={getattr(self, name)!r} is invalid: expected {what}"
                 )
 
+        for name in ("padding", "stall_start", "stall_end", "max_step", "armijo", "backtrack",
+                     "lm_damping", "lm_max_step", "lm_stall_decrease", "band_cells",
+                     "band_margin_cells"):
+            need(_is_real(getattr(self, name)), name, "a finite number")
+        need(self.memory_limit_gb is None or (_is_real(self.memory_limit_gb) and self.memory_limit_gb > 0),
+             "memory_limit_gb", "None or a positive number of GB")
         need(_is_int(self.grid) and 4 <= self.grid <= 1024, "grid", "an integer in [4, 1024]")
         need(
             self.target_grid is None or (_is_int(self.target_grid) and 4 <= self.target_grid <= 1024),
@@ -208,3 +220,8 @@ class RegistrationOptions:
 
 def _is_int(value) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_real(value) -> bool:
+    """A finite int or float (not a bool, a string or NaN)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)

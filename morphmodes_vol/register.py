@@ -8,6 +8,7 @@ function.
 from __future__ import annotations
 
 import logging
+import os
 import time
 from dataclasses import dataclass, field
 from typing import Callable
@@ -18,10 +19,13 @@ from .eigenbasis import LBSBasis, mesh_skinning_weights, to_paper_z
 from .energy import SDFEnergy
 from .errors import MeshValidationError, OptionError
 from .mesh import MeshLike, Normalization, as_mesh, bbox_diagonal, joint_normalization
+from .limits import check_memory, estimate_memory
 from .options import RegistrationOptions
 from .quadrature import BandEnergy
+from .repair import sdf_faces
 from .optimize import OptimizationHistory, ProgressEvent, optimize_adaptive
 from .sdf import DenseTargetSDF, Grid, closest_points
+from .stages import SourceEigenbasis, TargetField
 
 __all__ = ["register", "Registration", "RegistrationResult", "ground_truth_error"]
 
@@ -29,10 +33,15 @@ log = logging.getLogger(__name__)
 
 
 def _is_closed(F: np.ndarray) -> bool:
-    """Every undirected edge is shared by exactly two triangles."""
+    """Every undirected edge is shared by exactly two triangles (closed and edge-manifold)."""
     edges = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
     _, counts = np.unique(edges, axis=0, return_counts=True)
     return bool(np.all(counts == 2))
+
+
+def _label(mesh, default: str) -> str:
+    """A file name for messages, or ``default`` for in-memory meshes."""
+    return str(mesh) if isinstance(mesh, (str, os.PathLike)) else default
 
 
 def ground_truth_error(registered: np.ndarray, truth: np.ndarray) -> float:
@@ -72,7 +81,8 @@ class RegistrationResult:
     eigenvalues : (m_max,) float64
     history : OptimizationHistory
     status : str
-        ``converged``, ``stage_cap`` or ``max_iterations``.
+        ``converged``, ``stage_cap``, ``max_iterations`` or ``rolled_back`` (see
+        :class:`~morphmodes_vol.optimize.adaptive.AdaptiveResult`).
     timings : dict of str to float
         Seconds per stage: ``preprocess``, ``target_sdf``, ``eigenbasis``, ``optimize``,
         ``correspondence``.
@@ -123,6 +133,12 @@ class Registration:
     ----------
     source, target : path, trimesh.Trimesh or (V, F) tuple
     options : RegistrationOptions, optional
+    eigenbasis : SourceEigenbasis, optional
+        A precomputed eigenbasis of this source (:func:`morphmodes_vol.stages.source_eigenbasis`,
+        e.g. from a pipeline's cache), used instead of computing one in the pair's frame.
+    target_sdf : TargetField, optional
+        A precomputed target SDF of this target (:func:`morphmodes_vol.stages.target_field`),
+        sampled at the quadrature points instead of building a dense grid over the pair's box.
 
     Examples
     --------
@@ -134,24 +150,20 @@ class Registration:
     True
     """
 
-    def __init__(self, source: MeshLike, target: MeshLike, options: RegistrationOptions | None = None):
+    def __init__(self, source: MeshLike, target: MeshLike, options: RegistrationOptions | None = None,
+                 *, eigenbasis: SourceEigenbasis | None = None, target_sdf: TargetField | None = None):
         self.options = options if options is not None else RegistrationOptions()
         self.timings: dict[str, float] = {}
 
         t = time.perf_counter()
-        # 4 vertices: the least that determines the affine map of the first mode
+        # 4 vertices: the least that determines the affine map of the first mode, and the
+        # least that encloses a volume (a target needs an inside for its signed distance)
         self.source_vertices, self.source_faces = as_mesh(source, "source", min_vertices=4)
-        self.target_vertices, self.target_faces = as_mesh(target, "target", min_vertices=3)
+        self.target_vertices, self.target_faces = as_mesh(target, "target", min_vertices=4)
         if self.options.modes > self.source_vertices.shape[0]:
             raise OptionError(
                 f"modes={self.options.modes} exceeds the source's "
                 f"{self.source_vertices.shape[0]} vertices"
-            )
-        if self.options.source_sign == "raycast" and not _is_closed(self.source_faces):
-            log.warning(
-                "the source mesh is not closed (some edge is not shared by exactly two "
-                "triangles): ray-parity signs may be wrong behind its holes; consider "
-                "source_sign='winding'"
             )
         self.normalization = joint_normalization(self.source_vertices, self.target_vertices)
         self.X0 = self.normalization.apply(self.source_vertices)
@@ -161,23 +173,55 @@ class Registration:
         pad = self.options.padding * float(np.linalg.norm(hi - lo))
         self.quadrature = Grid.covering(lo, hi, self.options.grid, pad)
         self.target_grid = Grid.covering(lo, hi, self.options.resolved_target_grid, pad)
+        check_memory(
+            estimate_memory(len(self.source_vertices), len(self.source_faces), len(self.target_faces),
+                            self.options.modes, self.quadrature.size, self.target_grid.size),
+            self.options.memory_limit_gb,
+            f"{_label(source, 'source')} ({len(self.source_vertices)} vertices) onto "
+            f"{_label(target, 'target')} ({len(self.target_faces)} faces) with {self.options.modes} "
+            f"modes on a {'x'.join(map(str, self.quadrature.shape))} quadrature grid",
+        )
+        # faces for the SDFs and the eigenbasis: no degenerate or duplicate triangles,
+        # consistent orientation (the output keeps the faces as given)
+        self.source_sdf_faces = sdf_faces(self.X0, self.source_faces, "source")
+        self.target_sdf_faces = sdf_faces(self.Y, self.target_faces, "target")
+        if self.options.source_sign == "raycast" and not _is_closed(self.source_sdf_faces):
+            log.warning(
+                "the source mesh is not closed or has non-manifold edges (some edge is not "
+                "shared by exactly two triangles): ray-parity signs may be wrong behind its "
+                "holes; consider source_sign='winding'"
+            )
         self.timings["preprocess"] = time.perf_counter() - t
 
         t = time.perf_counter()
-        self.weights, self.eigenvalues = mesh_skinning_weights(
-            self.X0, self.source_faces, self.options.modes, seed=self.options.seed
-        )
+        if eigenbasis is None:
+            self.weights, self.eigenvalues = mesh_skinning_weights(
+                self.X0, self.source_sdf_faces, self.options.modes, seed=self.options.seed
+            )
+        else:
+            expected = (self.source_vertices.shape[0], self.options.modes)
+            if eigenbasis.weights.shape != expected:
+                raise OptionError(
+                    f"the precomputed eigenbasis has weights of shape {eigenbasis.weights.shape}, "
+                    f"expected {expected} (source vertices, modes)"
+                )
+            self.weights, self.eigenvalues = eigenbasis.in_frame(self.normalization)
         self.basis = LBSBasis(self.X0, self.weights)
         self.timings["eigenbasis"] = time.perf_counter() - t
         log.info("%d skinning eigenmodes in %.2fs", self.options.modes, self.timings["eigenbasis"])
 
         t = time.perf_counter()
-        self.target_sdf = DenseTargetSDF.from_mesh(self.Y, self.target_faces, self.target_grid)
         self.Q = self.quadrature.points()
-        self.g = self.target_sdf.sample(self.Q)
+        if target_sdf is None:
+            self.target_sdf = DenseTargetSDF.from_mesh(self.Y, self.target_sdf_faces, self.target_grid)
+            self.g = self.target_sdf.sample(self.Q)
+        else:
+            self.target_sdf = target_sdf
+            self.g = target_sdf.sample(self.Q, self.normalization)
         self.timings["target_sdf"] = time.perf_counter() - t
         log.info("target SDF on %s nodes, %d quadrature points, %.2fs",
-                 self.target_grid.shape, self.Q.shape[0], self.timings["target_sdf"])
+                 self.target_sdf.sdf.grid.shape if target_sdf is not None else self.target_grid.shape,
+                 self.Q.shape[0], self.timings["target_sdf"])
 
     def energy(self) -> SDFEnergy | BandEnergy:
         """A fresh Eq. (3) evaluator for this pair (its evaluation counter starts at 0), on
@@ -186,16 +230,22 @@ class Registration:
         if o.quadrature == "band":
             h = self.quadrature.spacing
             return BandEnergy(
-                self.source_faces, self.quadrature, self.g, self.target_sdf.sample,
+                self.source_sdf_faces, self.quadrature, self.g, self.sample_target,
                 band=o.band_cells * h, factor=o.block_factor, margin=o.band_margin_cells * h,
                 sign=o.source_sign, samples=o.occupancy_samples,
             )
         return self.full_energy()
 
+    def sample_target(self, points: np.ndarray) -> np.ndarray:
+        """Target SDF at ``points (k, 3)`` of the pair's normalized frame, ``(k,)``."""
+        if isinstance(self.target_sdf, TargetField):
+            return self.target_sdf.sample(points, self.normalization)
+        return self.target_sdf.sample(points)
+
     def full_energy(self) -> SDFEnergy:
         """Eq. (3) on every node of the quadrature grid (the paper's quadrature)."""
         return SDFEnergy(
-            self.source_faces,
+            self.source_sdf_faces,
             self.Q,
             self.g,
             self.quadrature.cell_volume,

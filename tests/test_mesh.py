@@ -27,7 +27,7 @@ def test_validate_returns_copies_with_canonical_dtypes():
         (TET_V[:, :2], TET_F, "shape (n, 3)"),
         (np.vstack([TET_V, [[np.nan, 0, 0]]]), TET_F, "NaN or infinite"),
         (TET_V, TET_F + 1, "must lie in [0, 3]"),
-        (TET_V, np.array([[0, 1, 2, 3]]), "triangles"),
+        (TET_V, np.array([[0, 1, 2, 3, 0]]), "triangles (m, 3) or quads"),
         (TET_V, np.zeros((0, 3), int), "no faces"),
         (TET_V, np.array([[0.5, 1, 2]]), "integers"),
         ([["a", "b", "c"]] * 4, TET_F, "not a numeric array"),

@@ -6,9 +6,11 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+from scipy.sparse.linalg import ArpackError
 
 from ..errors import MeshValidationError
 from ..mesh import bbox_diagonal, validate_mesh
+from ..repair import degenerate_faces
 from .skinning_eigenmodes import skinning_eigenmodes
 
 __all__ = ["mesh_skinning_weights"]
@@ -65,9 +67,7 @@ def mesh_skinning_weights(V, F, modes: int, seed: int = 0, weld_tolerance: float
     inverse = inverse.ravel()
     Vw = V[first]
     Fw = inverse[F]
-    repeated = (Fw[:, 0] == Fw[:, 1]) | (Fw[:, 1] == Fw[:, 2]) | (Fw[:, 0] == Fw[:, 2])
-    area2 = np.linalg.norm(np.cross(Vw[Fw[:, 1]] - Vw[Fw[:, 0]], Vw[Fw[:, 2]] - Vw[Fw[:, 0]]), axis=1)
-    degenerate = repeated | (area2 <= 1e-14 * diag * diag)
+    degenerate = degenerate_faces(Vw, Fw)
     Fw = Fw[~degenerate]
     if Fw.shape[0] == 0:
         raise MeshValidationError("source: every triangle is degenerate (zero area)")
@@ -79,7 +79,13 @@ def mesh_skinning_weights(V, F, modes: int, seed: int = 0, weld_tolerance: float
         )
     compact = np.full(Vw.shape[0], -1, dtype=np.int64)
     compact[used] = np.arange(used.size)
-    Wc, lam = skinning_eigenmodes(Vw[used], compact[Fw], modes, seed=seed)
+    try:
+        Wc, lam = skinning_eigenmodes(Vw[used], compact[Fw], modes, seed=seed)
+    except (ArpackError, np.linalg.LinAlgError, RuntimeError) as exc:  # no convergence, singular
+        raise MeshValidationError(
+            f"source: the skinning eigenproblem could not be solved ({type(exc).__name__}: {exc}); "
+            "try another --seed, fewer --modes, or remesh the source"
+        ) from None
 
     # each input vertex -> welded vertex -> row of Wc; welded vertices not in the
     # eigenproblem take the row of the nearest one that is

@@ -32,8 +32,8 @@ __all__ = ["optimize_adaptive", "OptimizationHistory", "ProgressEvent", "Status"
 
 log = logging.getLogger(__name__)
 
-Status = Literal["converged", "stage_cap", "max_iterations"]
-StageEnd = Literal["stalled", "line_search", "iteration_cap", "max_iterations"]
+Status = Literal["converged", "stage_cap", "max_iterations", "rolled_back"]
+StageEnd = Literal["stalled", "line_search", "iteration_cap", "max_iterations", "fault"]
 
 
 @dataclass(frozen=True)
@@ -67,7 +67,8 @@ class OptimizationHistory:
         Index into ``step_rms`` where each stage (1, 2, ... modes) began.
     stage_ends : list of str
         Why each stage ended: ``stalled``, ``line_search``, ``iteration_cap``,
-        ``max_iterations``.
+        ``max_iterations``, ``fault`` (a NaN or infinite energy or gradient blocked
+        progress; the run stops there).
     stage_seconds : list of float
         Wall time of each stage.
     stage_evaluations : list of int
@@ -116,10 +117,14 @@ class AdaptiveResult:
         ``basis.deform(T)``.
     final : EnergyEvaluation
     history : OptimizationHistory
-    status : {"converged", "stage_cap", "max_iterations"}
+    status : {"converged", "stage_cap", "max_iterations", "rolled_back"}
         ``converged``: every stage ended by the stall test or a line search that found no
-        decrease; ``stage_cap``: at least one stage was cut by ``max_iterations_per_stage``;
-        ``max_iterations``: the run was cut by ``max_iterations`` before ``m_max`` modes.
+        decrease; ``stage_cap``: at least one stage was cut by its iteration cap
+        (``max_iterations_per_stage``, or ``lm_iterations_per_stage``, which the fast path
+        reaches by design); ``max_iterations``: the run was cut by ``max_iterations`` before
+        ``m_max`` modes; ``rolled_back``: a NaN or infinite energy, gradient or direction
+        stopped the run, which returns its last good state (the last accepted step; the
+        rest pose when the very first evaluation was not finite).
     """
 
     T: np.ndarray
@@ -128,6 +133,20 @@ class AdaptiveResult:
     initial: EnergyEvaluation
     history: OptimizationHistory
     status: Status
+
+
+def _finite(ev: EnergyEvaluation | None) -> bool:
+    """Energy and gradient are free of NaN and infinity."""
+    return ev is not None and bool(np.isfinite(ev.energy) and np.isfinite(ev.gradient).all())
+
+
+def _evaluate_finite(energy: SDFEnergy, X: np.ndarray) -> EnergyEvaluation | None:
+    """Evaluate at ``X``, or ``None`` when ``X`` or the result is not finite (never hand
+    non-finite vertices to the SDF queries, never accept a non-finite value)."""
+    if not np.isfinite(X).all():
+        return None
+    ev = energy.evaluate(X)
+    return ev if _finite(ev) else None
 
 
 def _precondition(grad: np.ndarray, basis: LBSBasis, kind: str) -> np.ndarray:
@@ -161,6 +180,8 @@ class _GradientStepper:
         grad = basis.pullback(current.gradient, T.shape[0])  # B_m^T dE/dx
         direction = _precondition(grad, basis, options.preconditioner)
         slope = float(np.sum(grad * direction))
+        if not np.isfinite(slope):
+            return _Step(end="fault")
         if not slope < 0:
             return _Step(end="line_search")
         dir_rms = float(np.sqrt(np.sum(basis.displacement(direction) ** 2) / n))
@@ -169,8 +190,13 @@ class _GradientStepper:
         cap = options.max_step / dir_rms  # step length that moves vertices by max_step RMS
         alpha = cap if self.alpha is None else min(self.alpha, cap)
 
+        faults = []
+
         def trial(a: float):
-            ev = self.energy.evaluate(basis.deform(T + a * direction))
+            ev = _evaluate_finite(self.energy, basis.deform(T + a * direction))
+            if ev is None:
+                faults.append(a)
+                return float("inf"), None
             return ev.energy, ev
 
         ls = armijo_backtracking(
@@ -183,7 +209,8 @@ class _GradientStepper:
             max_trials=options.max_backtracks,
         )
         if not ls.accepted:
-            return _Step(end="line_search")
+            # a fault when even the shortest trial was not finite
+            return _Step(end="fault" if faults and faults[-1] == ls.step else "line_search")
         # warm start: try a longer step next time if this one needed no backtracking
         self.alpha = ls.step / options.backtrack if ls.trials == 1 else ls.step
         return _Step(T=T + ls.step * direction, evaluation=ls.state, step_rms=ls.step * dir_rms)
@@ -218,21 +245,25 @@ class _LevenbergMarquardtStepper:
             if rms > options.lm_max_step:  # hard trust region on the vertex motion
                 d *= options.lm_max_step / rms
                 rms = options.lm_max_step
-            if rms == 0 or not np.all(np.isfinite(d)):
+            if not np.all(np.isfinite(d)):
+                return _Step(end="fault")
+            if rms == 0:
                 return _Step(end="stalled")
             predicted = model.predicted_decrease(d)
             if not predicted > 0:
                 return _Step(end="line_search")
             trial_T = T + d.reshape(m, 3, 4)
-            ev = self.energy.evaluate(basis.deform(trial_T))
-            rho = (current.energy - ev.energy) / predicted
-            if np.isfinite(ev.energy) and rho > options.armijo:
+            ev = _evaluate_finite(self.energy, basis.deform(trial_T))
+            faulty = ev is None
+            rho = -np.inf if faulty else (current.energy - ev.energy) / predicted
+            if rho > options.armijo:
                 self.damping *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
                 self.nu = 2.0
                 return _Step(T=trial_T, evaluation=ev, step_rms=rms)
             self.damping *= self.nu
             self.nu *= 2.0
-        return _Step(end="line_search")
+        # a fault when even the most damped (shortest) trial was not finite
+        return _Step(end="fault" if faulty else "line_search")
 
 
 @dataclass
@@ -288,6 +319,9 @@ def optimize_adaptive(
     T = np.zeros((0, 3, 4))
     iteration = 0
     status: Status = "converged"
+    if not _finite(current):
+        log.warning("the energy at the rest pose is not finite: nothing to optimize")
+        m_max, status, T = 0, "rolled_back", np.zeros((1, 3, 4))
 
     def report(modes: int, stage_iteration: int, step_rms: float, eps: float) -> None:
         if progress is not None:
@@ -323,7 +357,11 @@ def optimize_adaptive(
                 break
             X = basis.deform(T)
             if energy.refresh(X):  # adaptive quadrature moved: same state, new quadrature
-                current = energy.evaluate(X)
+                refreshed = _evaluate_finite(energy, X)
+                if refreshed is None:
+                    end = "fault"
+                    break
+                current = refreshed
                 history.refreshes.append(len(history.energy) - 1)
             out = stepper.step(T, current)
             if out.end is not None:
@@ -350,8 +388,14 @@ def optimize_adaptive(
         if end == "max_iterations":
             status = "max_iterations"
             break
+        if end == "fault":  # T is still the last good (accepted) state
+            log.warning("non-finite energy or gradient in stage %d: rolled back to the last "
+                        "accepted step (energy %.6g)", m, current.energy)
+            status = "rolled_back"
+            break
     else:
-        status = "stage_cap" if "iteration_cap" in history.stage_ends else "converged"
+        if status != "rolled_back":
+            status = "stage_cap" if "iteration_cap" in history.stage_ends else "converged"
 
     history.evaluations = energy.evaluations
     return AdaptiveResult(
