@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from typing import Callable, Literal
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from ..eigenbasis.lbs import LBSBasis
 from ..energy import EnergyEvaluation, SDFEnergy
@@ -305,6 +306,20 @@ def optimize_adaptive(
     -------
     AdaptiveResult
     """
+    # The products here are small (at most n x 4m and 12m x 12m): a multithreaded BLAS only
+    # adds wake-up costs, which are pathological on a busy machine (0.23 s instead of
+    # 0.002 s for one 80 x 5000 x 80 product, measured with 2 cores under load).
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _optimize_adaptive(energy, basis, options, progress)
+
+
+def _optimize_adaptive(
+    energy: SDFEnergy,
+    basis: LBSBasis,
+    options: RegistrationOptions,
+    progress: Callable[[ProgressEvent], None] | None = None,
+) -> AdaptiveResult:
+    """The body of :func:`optimize_adaptive`."""
     t0 = time.perf_counter()
     m_max = min(options.modes, basis.max_modes)
     history = OptimizationHistory()
