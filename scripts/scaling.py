@@ -1,17 +1,17 @@
 """Time and peak memory against vertex count and grid resolution, at default settings.
 
-    python scripts/scaling.py [--pose 05] [--vertices 5k 20k 42k 80k] [--grids 32 48 64 96 128]
+    python scripts/scaling.py [--pose 05] [--vertices 5k 20k 45k 80k] [--grids 32 48 64 96 128]
                               [--big-grid 128] [--out results/scaling]
     make scaling
 
 Meshes: lion-reference and a lion pose from ``../shared/data``, refined by midpoint
 subdivision applied to the same faces of both, so vertex ``i`` still corresponds
-(``5k`` is the original, ``20k`` one full subdivision, ``80k`` two; ``42k`` subdivides one
-full time and then the first faces again until about 42,000 vertices). Without the data, a
+(``5k`` is the original, ``20k`` one subdivision, ``80k`` two; ``45k`` splits every
+triangle into 9, the 42k class of mesh). Without the data, a
 generated capsule pair is refined the same way.
 
 Runs, each in a fresh child process: every vertex count at the default grid (64), every grid
-resolution on the original mesh, and the 42k mesh at ``--big-grid`` (the 2 GB memory check).
+resolution on the original mesh, and the 45k mesh at ``--big-grid`` (the 2 GB memory check).
 Writes ``<out>/scaling.json``, ``<out>/scaling.md`` and ``<out>/scaling.png``.
 """
 
@@ -28,27 +28,59 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _data import ROOT, data_dir  # noqa: E402
 from bench import _in_child, run_ours  # noqa: E402
 
-SIZES = {"5k": 0, "20k": 1, "42k": 1.5, "80k": 2}
+SIZES = {"5k": 0, "20k": 1, "45k": "ternary", "80k": 2}
 
 
-def refine(V: np.ndarray, F: np.ndarray, T: np.ndarray, level: float):
-    """Midpoint-subdivide source ``(V, F)`` and target ``(T, F)`` identically; a fractional
-    ``level`` subdivides the first faces once more until ``42/20`` times the vertices."""
+def ternary_subdivision(V: np.ndarray, F: np.ndarray, T: np.ndarray):
+    """Split every triangle into 9 (each edge in thirds, plus the face centre), applied to
+    the source ``(V, F)`` and the target ``(T, F)`` alike; ``n + 2 E + F`` vertices (45k
+    on the 5000-vertex lion), closed when the input is, vertex ``i < n`` unchanged."""
+    n = len(V)
+    half = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])  # face-edge c: (c, c+1)
+    edges, inverse = np.unique(np.sort(half, axis=1), axis=0, return_inverse=True)
+    inverse = inverse.reshape(3, -1).T  # (f, 3): edge of corner pair (c, c+1)
+    ne, nf = len(edges), len(F)
+
+    def points(X):
+        a, b = X[edges[:, 0]], X[edges[:, 1]]
+        thirds = np.stack([a + (b - a) / 3.0, a + 2.0 * (b - a) / 3.0], 1).reshape(-1, 3)
+        return np.concatenate([X, thirds, X[F].mean(axis=1)])
+
+    def third(c: int, near_first: bool) -> np.ndarray:
+        """Index of the edge point of face-edge (c, c+1) nearer corner c (or c+1)."""
+        lo_first = F[:, c] < F[:, (c + 1) % 3]  # edge stored as (F[c], F[c+1])
+        near_lo = lo_first if near_first else ~lo_first
+        return n + 2 * inverse[:, c] + np.where(near_lo, 0, 1)
+
+    # barycentric lattice (i, j, k), i + j + k = 3, on corners (v0, v1, v2)
+    lattice = {(3, 0, 0): F[:, 0], (0, 3, 0): F[:, 1], (0, 0, 3): F[:, 2],
+               (2, 1, 0): third(0, True), (1, 2, 0): third(0, False),
+               (0, 2, 1): third(1, True), (0, 1, 2): third(1, False),
+               (1, 0, 2): third(2, True), (2, 0, 1): third(2, False),
+               (1, 1, 1): n + 2 * ne + np.arange(nf)}
+    tris = []
+    for i in range(3):
+        for j in range(3 - i):
+            k = 2 - i - j  # upward triangles
+            tris.append(((i + 1, j, k), (i, j + 1, k), (i, j, k + 1)))
+    for i in range(2):
+        for j in range(2 - i):
+            k = 1 - i - j  # downward triangles
+            tris.append(((i, j + 1, k + 1), (i + 1, j, k + 1), (i + 1, j + 1, k)))
+    F9 = np.concatenate([np.stack([lattice[a], lattice[b], lattice[c]], 1) for a, b, c in tris])
+    return points(np.asarray(V, float)), F9, points(np.asarray(T, float))
+
+
+def refine(V: np.ndarray, F: np.ndarray, T: np.ndarray, level):
+    """Midpoint-subdivide source ``(V, F)`` and target ``(T, F)`` identically ``level``
+    times, or split each triangle into 9 (``level="ternary"``)."""
     import trimesh
 
-    goal = None
-    if level != int(level):
-        goal = int(round(42000 * len(V) / 5000))
+    if level == "ternary":
+        return ternary_subdivision(np.asarray(V), np.asarray(F), np.asarray(T))
     for _ in range(int(level)):
         V2, F2 = trimesh.remesh.subdivide(V, F)
         T, _ = trimesh.remesh.subdivide(T, F)
-        V, F = V2, F2
-    if goal is not None:
-        # each subdivided face adds about 1.5 vertices (3 midpoints shared by 2 faces)
-        count = min(len(F), int((goal - len(V)) / 1.5))
-        idx = np.arange(count)
-        V2, F2 = trimesh.remesh.subdivide(V, F, face_index=idx)
-        T, _ = trimesh.remesh.subdivide(T, F, face_index=idx)
         V, F = V2, F2
     return np.asarray(V), np.asarray(F), np.asarray(T)
 
@@ -84,7 +116,7 @@ def main() -> int:
     runs = [("vertices", size, 64) for size in args.vertices]
     runs += [("grid", "5k", g) for g in args.grids if g != 64 or "5k" not in args.vertices]
     if args.big_grid:
-        runs.append(("memory", "42k", args.big_grid))
+        runs.append(("memory", "45k", args.big_grid))
     rows = []
     print("| series | vertices | grid | wall s | SDF evals | ms / eval | error | peak RSS MB |")
     print("|---|---|---|---|---|---|---|---|", flush=True)
