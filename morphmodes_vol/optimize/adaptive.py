@@ -1,15 +1,20 @@
-"""Algorithm 1: gradient descent in an adaptive skinning-eigenmode subspace.
+"""Algorithm 1: optimization in an adaptive skinning-eigenmode subspace.
 
-Start with one mode (a global affine map); take gradient steps on the coefficients of the
-active modes with a backtracking (Armijo) line search; when one step moves the vertices by
-less than ``eps_stall`` (root-mean-square vertex motion, normalized units), add the next mode
-(12 more coefficients, started at zero); stop after ``m_max`` modes.
+Start with one mode (a global affine map); take steps on the coefficients of the active
+modes; when one step moves the vertices by less than ``eps_stall`` (root-mean-square vertex
+motion, normalized units), or a stage's step cap is reached, add the next mode (12 more
+coefficients, started at zero); stop after ``m_max`` modes.
 
-Deviation from the paper (documented in docs/method.md): by default each mode's 3x4 block of
-the gradient is multiplied by the inverse of its 4x4 Gram matrix ``[X0 1]^T diag(w_j)^2
-[X0 1]``. Plain gradient descent on the raw coefficients is badly conditioned (translation
-and linear parts of a block differ in scale by ~25x on the lion); ``preconditioner="none"``
-gives the paper's plain step.
+Two steps share this schedule:
+
+- ``optimizer="paper"``: the paper's gradient step with a backtracking (Armijo) line search.
+  Deviation (docs/method.md): by default each mode's 3x4 block of the gradient is multiplied
+  by the inverse of its 4x4 Gram matrix ``[X0 1]^T diag(w_j)^2 [X0 1]``; plain gradient
+  descent on the raw coefficients is badly conditioned (translation and linear parts of a
+  block differ in scale by ~25x on the lion); ``preconditioner="none"`` gives the paper's
+  plain step.
+- ``optimizer="lm"`` (default): a Levenberg-Marquardt step on the Gauss-Newton model with
+  frozen correspondences (:mod:`.gauss_newton`), accepted on the true energy.
 """
 
 from __future__ import annotations
