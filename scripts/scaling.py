@@ -153,6 +153,8 @@ def _plot(rows: list[dict], path: Path, title: str) -> None:
     by_g = sorted([r for r in rows if r["size"] == "5k"], key=lambda r: r["grid"])
     axes[0].plot([r["vertices"] for r in by_n], [r["wall_s"] for r in by_n], "o-")
     axes[0].set(xlabel="source vertices", ylabel="wall time (s)", title="grid 64", xscale="log")
+    axes[0].set_xticks([r["vertices"] for r in by_n], [f"{r['vertices'] / 1000:.0f}k" for r in by_n])
+    axes[0].minorticks_off()
     axes[1].plot([r["grid"] for r in by_g], [r["wall_s"] for r in by_g], "o-")
     axes[1].set(xlabel="grid resolution", ylabel="wall time (s)", title="original mesh")
     fig.suptitle(title)
