@@ -1,5 +1,5 @@
 # Thin aliases of dev.sh (which works without make too).
-.PHONY: setup demo test lion-table vdb-env test-vdb
+.PHONY: setup demo test lion-table vdb-env test-vdb bench scaling
 setup:
 	bash dev.sh setup
 demo:
@@ -12,3 +12,7 @@ vdb-env:
 	bash dev.sh vdb-env
 test-vdb:
 	bash dev.sh test-vdb
+bench: setup
+	.venv/bin/python scripts/bench.py
+scaling: setup
+	.venv/bin/python scripts/scaling.py

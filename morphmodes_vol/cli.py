@@ -16,7 +16,7 @@ import numpy as np
 
 from .errors import MorphModesError
 from .export import MESH_FORMATS, write_outputs
-from .options import PRECONDITIONERS, SIGN_METHODS, RegistrationOptions
+from .options import OPTIMIZERS, PRECONDITIONERS, QUADRATURES, SIGN_METHODS, RegistrationOptions
 from .sdf.target import TARGET_BACKENDS, TARGET_SDF_SUFFIXES
 
 __all__ = ["main"]
@@ -67,6 +67,12 @@ def _options_from_args(args) -> RegistrationOptions:
         changes["max_iterations"] = args.max_iterations
     if args.preconditioner is not None:
         changes["preconditioner"] = args.preconditioner
+    if args.optimizer is not None:
+        changes["optimizer"] = args.optimizer
+        if args.optimizer == "paper" and args.quadrature is None:
+            changes["quadrature"] = "full"  # the paper's Algorithm 1 on the paper's Eq. (3)
+    if args.quadrature is not None:
+        changes["quadrature"] = args.quadrature
     if args.memory_limit is not None:
         changes["memory_limit_gb"] = None if args.memory_limit <= 0 else args.memory_limit
     if args.target_backend is not None:
@@ -86,6 +92,13 @@ def _add_common(p: argparse.ArgumentParser, default_grid: int, default_modes: in
                    help=f"maximum number of skinning eigenmodes, m_max (default {default_modes})")
     p.add_argument("--max-iterations", type=int, default=None,
                    help=f"cap on gradient steps over all stages (default {d.max_iterations})")
+    p.add_argument("--optimizer", choices=list(OPTIMIZERS), default=None,
+                   help=f"'lm' (Levenberg-Marquardt in the subspace) or 'paper' (Algorithm 1's "
+                        f"gradient descent, with --quadrature full unless given; default "
+                        f"{d.optimizer!r})")
+    p.add_argument("--quadrature", choices=list(QUADRATURES), default=None,
+                   help=f"'full' grid (Eq. 3) or 'band': full grid near the surfaces, coarse "
+                        f"blocks elsewhere (default {d.quadrature!r})")
     p.add_argument("--preconditioner", choices=list(PRECONDITIONERS), default=None,
                    help="'block' (default) or the paper's plain gradient step 'none'")
     p.add_argument("--seed", type=int, default=d.seed, help="seed of the eigensolver's start vector")

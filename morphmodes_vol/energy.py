@@ -2,6 +2,8 @@
 
     E(x) = h^3 * sum_i (f(Q_i; x) - g(Q_i))^2
 
+(more generally ``sum_i w_i (f_i - g_i)^2`` with per-point quadrature weights ``w_i``).
+
 ``f`` is the signed distance of the deformed source, ``g`` the target's, ``Q`` the
 quadrature points (nodes of a regular grid of spacing ``h``). The factor ``h^3`` makes ``E``
 a quadrature of the integral of Eq. (2), so energies compare across grid resolutions; it
@@ -41,16 +43,35 @@ class EnergyEvaluation:
         ``dE/dx`` per vertex.
     residual : (k,) float64
         ``f - g`` at the quadrature points.
+    closest_faces : (k,) int64, optional
+        Source triangle closest to each quadrature point.
+    barycentrics : (k, 3) float64, optional
+        Barycentric coordinates of the closest point on that triangle.
+    normal : (k, 3) float64, optional
+        ``grad_q f`` at each quadrature point. With the two above, the Jacobian of the
+        residual with respect to the vertices (frozen correspondences, see
+        :mod:`morphmodes_vol.optimize.gauss_newton`).
+    volume : float, optional
+        Sum of the quadrature weights (the volume the points stand for).
     """
 
     energy: float
     gradient: np.ndarray
     residual: np.ndarray
+    closest_faces: np.ndarray | None = None
+    barycentrics: np.ndarray | None = None
+    normal: np.ndarray | None = None
+
+    volume: float | None = None
 
     @property
     def rms_residual(self) -> float:
-        """Root mean square of ``f - g`` (normalized length units)."""
-        return float(np.sqrt(np.mean(self.residual**2)))
+        """Root mean square of ``f - g`` over the quadrature's volume,
+        ``sqrt(E / sum_i w_i)`` (normalized length units): on a regular grid the plain RMS
+        over the nodes, and comparable across quadratures of the same box."""
+        if self.volume is None:
+            return float(np.sqrt(np.mean(self.residual**2)))
+        return float(np.sqrt(self.energy / self.volume))
 
 
 class SDFEnergy:
@@ -64,8 +85,8 @@ class SDFEnergy:
         Quadrature points.
     g : (k,) float
         Target signed distance at ``Q``.
-    weight : float
-        Quadrature weight of every point (``h^3``).
+    weight : float or (k,) float
+        Quadrature weight of every point (``h^3`` on a regular grid).
     sign : {"raycast", "winding"}
         Inside test of the deformed source.
     samples : int
@@ -90,20 +111,30 @@ class SDFEnergy:
         self.g = np.ascontiguousarray(g, dtype=np.float64)
         if self.g.shape != (self.Q.shape[0],):
             raise ValueError(f"g must have shape ({self.Q.shape[0]},), got {self.g.shape}")
-        self.weight = float(weight)
+        w = np.asarray(weight, dtype=np.float64)
+        if w.ndim == 0:
+            w = np.full(self.Q.shape[0], float(w))
+        if w.shape != (self.Q.shape[0],) or not np.all(np.isfinite(w)) or np.any(w < 0):
+            raise ValueError(f"weight must be a non-negative scalar or ({self.Q.shape[0]},) array")
+        self.weights = w
         self.sign: SignMethod = sign
         self.samples = int(samples)
         self.evaluations = 0
         self.seconds = 0.0
+
+    def refresh(self, X: np.ndarray, force: bool = False) -> bool:
+        """Fixed quadrature: nothing to refresh (see :class:`morphmodes_vol.quadrature.BandEnergy`)."""
+        return False
 
     def evaluate(self, X: np.ndarray) -> EnergyEvaluation:
         """Energy and vertex gradient at vertices ``X (n, 3)``."""
         t0 = time.perf_counter()
         sd = signed_distance(X, self.F, self.Q, sign=self.sign, samples=self.samples)
         r = sd.value - self.g
-        energy = self.weight * float(r @ r)
+        wr = self.weights * r
+        energy = float(wr @ r)
         # dE/dv for the three corners of each closest triangle, scattered to vertices
-        coef = (-2.0 * self.weight * r)[:, None] * sd.closest.barycentrics  # (k, 3)
+        coef = (-2.0 * wr)[:, None] * sd.closest.barycentrics  # (k, 3)
         tri = self.F[sd.closest.faces]  # (k, 3)
         n = X.shape[0]
         grad = np.empty((n, 3))
@@ -113,4 +144,12 @@ class SDFEnergy:
             grad[:, d] = np.bincount(idx, weights=contrib, minlength=n)
         self.evaluations += 1
         self.seconds += time.perf_counter() - t0
-        return EnergyEvaluation(energy=energy, gradient=grad, residual=r)
+        return EnergyEvaluation(
+            energy=energy,
+            gradient=grad,
+            residual=r,
+            closest_faces=sd.closest.faces,
+            barycentrics=sd.closest.barycentrics,
+            normal=sd.normal,
+            volume=float(self.weights.sum()),
+        )

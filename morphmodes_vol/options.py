@@ -17,11 +17,16 @@ from .errors import OptionError
 from .sdf.source import SignMethod
 from .sdf.target import TARGET_BACKENDS, TargetBackend
 
-__all__ = ["RegistrationOptions", "Preconditioner", "PRECONDITIONERS", "SIGN_METHODS"]
+__all__ = ["RegistrationOptions", "Preconditioner", "PRECONDITIONERS", "SIGN_METHODS", "Optimizer",
+           "OPTIMIZERS", "Quadrature", "QUADRATURES"]
 
 Preconditioner = Literal["block", "none"]
 PRECONDITIONERS = typing.get_args(Preconditioner)
 SIGN_METHODS = typing.get_args(SignMethod)
+Optimizer = Literal["lm", "paper"]
+OPTIMIZERS = typing.get_args(Optimizer)
+Quadrature = Literal["full", "band"]
+QUADRATURES = typing.get_args(Quadrature)
 
 
 @dataclass(frozen=True)
@@ -35,6 +40,17 @@ class RegistrationOptions:
         other sides get the same spacing. ``64`` gives about 67k points on the lion.
     target_grid : int or None
         Nodes of the dense target-SDF grid along the longest side; ``None`` uses ``grid``.
+    quadrature : {"full", "band"}
+        ``"full"``: every grid node, Eq. (3) as in the paper. ``"band"``: every node within
+        ``band_cells`` grid spacings of either surface and one node per block of
+        ``block_factor^3`` nodes elsewhere, weighted by the block's volume
+        (:mod:`morphmodes_vol.quadrature`).
+    band_cells : float
+        Half width of the fine band, in grid spacings.
+    block_factor : int
+        Nodes per block side away from the surfaces (``"band"`` quadrature).
+    band_margin_cells : float
+        Vertex motion, in grid spacings, after which the band is recomputed.
     padding : float
         Margin added on every side of the union bounding box, as a fraction of its diagonal.
     modes : int
@@ -46,7 +62,8 @@ class RegistrationOptions:
         count (the paper's 1e-1 to 1e-3 on the 2-norm of all 3n coordinates correspond to
         about 1.4e-3 to 1.4e-5 RMS on its 5000-vertex lion).
     max_iterations_per_stage : int
-        Cap on the gradient steps of one stage before the next mode is added anyway.
+        Cap on the gradient steps of one stage before the next mode is added anyway
+        (``optimizer="paper"``).
     max_iterations : int
         Cap on the gradient steps of the whole run.
     max_step : float
@@ -59,6 +76,23 @@ class RegistrationOptions:
         Step shrink factor of the backtracking line search, in (0, 1).
     max_backtracks : int
         Trial steps of one line search before the stage is declared stalled.
+    optimizer : {"lm", "paper"}
+        Step taken in the active subspace. ``"paper"``: Algorithm 1's gradient step with a
+        backtracking line search (see ``preconditioner``); ``"lm"``: Levenberg-Marquardt on
+        the Gauss-Newton model with frozen closest-point correspondences, accepted on the
+        true energy (docs/method.md). Both use the same modes and stall schedule.
+    lm_damping : float
+        Initial Levenberg-Marquardt damping, relative to the scale of the normal equations
+        (dimensionless); adapted by Nielsen's rule during the run.
+    lm_max_step : float
+        Largest RMS vertex motion (normalized units) of one Levenberg-Marquardt step.
+    lm_iterations_per_stage : int
+        Cap on the Levenberg-Marquardt steps of one stage (``max_iterations_per_stage`` is
+        the gradient optimizer's). Few on purpose: converging early stages fully raised the
+        ground-truth error on the lion (docs/method.md).
+    lm_stall_decrease : float
+        A Levenberg-Marquardt stage also ends when one step lowers the energy by less than
+        this fraction of it (``0`` turns the test off).
     preconditioner : {"block", "none"}
         ``"block"`` (default) scales each mode's 3x4 block of the gradient by the inverse of
         its 4x4 Gram matrix ``[X0 1]^T diag(w_j)^2 [X0 1]`` (our one deviation from the
@@ -90,6 +124,10 @@ class RegistrationOptions:
 
     grid: int = 64
     target_grid: int | None = None
+    quadrature: Quadrature = "band"
+    band_cells: float = 2.0
+    block_factor: int = 4
+    band_margin_cells: float = 4.0
     padding: float = 0.1
     modes: int = 20
     stall_start: float = 1.4e-3
@@ -100,6 +138,11 @@ class RegistrationOptions:
     armijo: float = 1e-4
     backtrack: float = 0.5
     max_backtracks: int = 12
+    optimizer: Optimizer = "lm"
+    lm_damping: float = 1e-3
+    lm_max_step: float = 0.1
+    lm_iterations_per_stage: int = 3
+    lm_stall_decrease: float = 0.01
     preconditioner: Preconditioner = "block"
     source_sign: SignMethod = "raycast"
     occupancy_samples: int = 1
@@ -117,7 +160,8 @@ class RegistrationOptions:
                 )
 
         for name in ("padding", "stall_start", "stall_end", "max_step", "armijo", "backtrack",
-                     "vdb_half_width"):
+                     "vdb_half_width", "lm_damping", "lm_max_step", "lm_stall_decrease",
+                     "band_cells", "band_margin_cells"):
             need(_is_real(getattr(self, name)), name, "a finite number")
         need(self.memory_limit_gb is None or (_is_real(self.memory_limit_gb) and self.memory_limit_gb > 0),
              "memory_limit_gb", "None or a positive number of GB")
@@ -127,6 +171,11 @@ class RegistrationOptions:
             "target_grid",
             "None or an integer in [4, 1024]",
         )
+        need(self.quadrature in QUADRATURES, "quadrature", f"one of {QUADRATURES}")
+        need(self.band_cells > 0, "band_cells", "a positive float")
+        need(_is_int(self.block_factor) and 1 <= self.block_factor <= 16, "block_factor",
+             "an integer in [1, 16]")
+        need(self.band_margin_cells > 0, "band_margin_cells", "a positive float")
         need(0.0 <= self.padding <= 2.0, "padding", "a float in [0, 2]")
         need(_is_int(self.modes) and 1 <= self.modes <= 500, "modes", "an integer in [1, 500]")
         need(self.stall_start > 0, "stall_start", "a positive float")
@@ -140,6 +189,12 @@ class RegistrationOptions:
         need(0 < self.backtrack < 1, "backtrack", "a float in (0, 1)")
         need(_is_int(self.max_backtracks) and self.max_backtracks >= 1, "max_backtracks",
              "a positive integer")
+        need(self.optimizer in OPTIMIZERS, "optimizer", f"one of {OPTIMIZERS}")
+        need(self.lm_damping > 0, "lm_damping", "a positive float")
+        need(self.lm_max_step > 0, "lm_max_step", "a positive float")
+        need(_is_int(self.lm_iterations_per_stage) and self.lm_iterations_per_stage >= 1,
+             "lm_iterations_per_stage", "a positive integer")
+        need(0 <= self.lm_stall_decrease < 1, "lm_stall_decrease", "a float in [0, 1)")
         need(self.preconditioner in PRECONDITIONERS, "preconditioner",
              f"one of {PRECONDITIONERS}")
         need(self.source_sign in SIGN_METHODS, "source_sign", f"one of {SIGN_METHODS}")

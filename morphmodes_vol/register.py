@@ -21,6 +21,7 @@ from .errors import MeshValidationError, OptionError
 from .mesh import MeshLike, Normalization, as_mesh, bbox_diagonal, joint_normalization
 from .limits import check_memory, estimate_memory
 from .options import RegistrationOptions
+from .quadrature import BandEnergy
 from .repair import sdf_faces
 from .optimize import OptimizationHistory, ProgressEvent, optimize_adaptive
 from .sdf import Grid, TargetSDF, build_target_sdf, closest_points, is_target_sdf_path, load_target_sdf
@@ -229,23 +230,44 @@ class Registration:
         self.Q = self.quadrature.points()
         if target_sdf is not None:  # a cached field of this target mesh (pipelines)
             self.target_sdf = target_sdf
-            self.g = target_sdf.sample(self.Q, self.normalization)
         elif grid_target is None:
             o = self.options
             self.target_sdf = build_target_sdf(self.Y, self.target_sdf_faces, self.target_grid,
                                                o.target_backend, o.target_sign, o.vdb_half_width)
-            self.g = self.target_sdf.sample(self.Q)
         else:
-            # the SDF lives in the target's original frame; distances scale with the frame
             self.target_sdf = grid_target
-            self.g = self.normalization.scale * grid_target.sample(self.normalization.undo(self.Q))
+        self._grid_target = target_sdf is None and grid_target is not None
+        self.g = self.sample_target(self.Q)
         self.timings["target_sdf"] = time.perf_counter() - t
         log.info("target SDF (%s, %.1f MB), %d quadrature points, %.2fs",
                  type(self.target_sdf).__name__, self.target_sdf.nbytes / 1e6, self.Q.shape[0],
                  self.timings["target_sdf"])
 
-    def energy(self) -> SDFEnergy:
-        """A fresh Eq. (3) evaluator for this pair (its evaluation counter starts at 0)."""
+    def energy(self) -> SDFEnergy | BandEnergy:
+        """A fresh Eq. (3) evaluator for this pair (its evaluation counter starts at 0), on
+        the quadrature ``options.quadrature`` selects."""
+        o = self.options
+        if o.quadrature == "band":
+            h = self.quadrature.spacing
+            return BandEnergy(
+                self.source_sdf_faces, self.quadrature, self.g, self.sample_target,
+                band=o.band_cells * h, factor=o.block_factor, margin=o.band_margin_cells * h,
+                sign=o.source_sign, samples=o.occupancy_samples,
+            )
+        return self.full_energy()
+
+    def sample_target(self, points: np.ndarray) -> np.ndarray:
+        """Target SDF at ``points (k, 3)`` of the pair's normalized frame, ``(k,)``."""
+        if isinstance(self.target_sdf, TargetField):  # a pipeline's cached field
+            return self.target_sdf.sample(points, self.normalization)
+        if self._grid_target:
+            # an SDF given as a file lives in the target's original frame; distances scale
+            n = self.normalization
+            return n.scale * self.target_sdf.sample(n.undo(points))
+        return self.target_sdf.sample(points)
+
+    def full_energy(self) -> SDFEnergy:
+        """Eq. (3) on every node of the quadrature grid (the paper's quadrature)."""
         return SDFEnergy(
             self.source_sdf_faces,
             self.Q,

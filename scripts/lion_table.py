@@ -1,8 +1,10 @@
-"""Ground-truth error and wall time of lion-reference onto lion-01..09 at default settings.
+"""Ground-truth error and wall time of lion-reference onto lion-01..09 at default settings
+(``--dataset cat``: cat-reference onto cat-01..09).
 
-    python scripts/lion_table.py [--poses 01 02 ...] [--out results/lion_table] [--set grid=48 modes=10]
+    python scripts/lion_table.py [--dataset lion|cat] [--poses 01 02 ...] [--out results/lion_table]
+                                 [--set grid=48 modes=10]
 
-Writes ``<out>/lion_table.csv`` and ``<out>/lion_table.md`` and prints the markdown table.
+Writes ``<out>/<dataset>_table.csv`` and ``<out>/<dataset>_table.md`` and prints the markdown table.
 Ground-truth error: mean_i ||registered_i - pose_i|| / bbox_diagonal(pose) (shared/data README).
 """
 
@@ -35,6 +37,7 @@ def _parse_overrides(items: list[str]) -> dict:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--dataset", choices=["lion", "cat"], default="lion")
     ap.add_argument("--poses", nargs="*", default=[f"{i:02d}" for i in range(1, 10)])
     ap.add_argument("--out", default=str(ROOT / "results" / "lion_table"))
     ap.add_argument("--set", nargs="*", default=[], metavar="OPTION=VALUE",
@@ -45,17 +48,18 @@ def main() -> int:
         print("shared data not found (set MORPHMODES_DATA)", file=sys.stderr)
         return 1
     options = mm.RegistrationOptions().replace(**_parse_overrides(args.set))
-    src = data / "lion-poses" / "lion-reference.obj"
+    animal = args.dataset
+    src = data / f"{animal}-poses" / f"{animal}-reference.obj"
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rows = []
     for pose in args.poses:
-        tgt = data / "lion-poses" / f"lion-{pose}.obj"
+        tgt = data / f"{animal}-poses" / f"{animal}-{pose}.obj"
         t = time.perf_counter()
         r = mm.register(src, tgt, options, ground_truth=tgt)
         wall = time.perf_counter() - t
         row = {
-            "pair": f"reference -> lion-{pose}",
+            "pair": f"reference -> {animal}-{pose}",
             "identity_error": r.metrics["identity_error"],
             "error": r.metrics["ground_truth_error"],
             "ratio": r.metrics["ground_truth_error"] / r.metrics["identity_error"],
@@ -67,7 +71,7 @@ def main() -> int:
         rows.append(row)
         print(f"{row['pair']}: identity {row['identity_error']:.4f} -> {row['error']:.4f} "
               f"({row['ratio']:.2f}x), {row['evaluations']} evals, {wall:.0f}s", flush=True)
-    with open(out / "lion_table.csv", "w", newline="") as fh:
+    with open(out / f"{animal}_table.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
@@ -80,7 +84,7 @@ def main() -> int:
     mean_er = sum(r["error"] for r in rows) / len(rows)
     md.append(f"| **mean** | {mean_id:.4f} | {mean_er:.4f} | {mean_er / mean_id:.2f} | | | | "
               f"{sum(r['wall_s'] for r in rows) / len(rows):.0f} |")
-    (out / "lion_table.md").write_text("\n".join(md) + "\n")
+    (out / f"{animal}_table.md").write_text("\n".join(md) + "\n")
     print("\n".join(md))
     return 0
 

@@ -25,7 +25,7 @@ def test_energy_value_is_weighted_sum_of_squares():
     E = _energy_for(V, F, V * 1.2)
     ev = E.evaluate(V)
     f = signed_distance(V, F, E.Q).value
-    assert ev.energy == pytest.approx(E.weight * np.sum((f - E.g) ** 2), rel=1e-12)
+    assert ev.energy == pytest.approx(np.sum(E.weights * (f - E.g) ** 2), rel=1e-12)
     # a sphere of radius 1 vs 1.2: every point outside both is off by exactly ~0.2
     far = np.linalg.norm(E.Q, axis=1) > 1.3
     np.testing.assert_allclose(ev.residual[far], 0.2, atol=0.02)

@@ -11,8 +11,10 @@ import morphmodes_vol as mm
 from morphmodes_vol.energy import EnergyEvaluation
 from morphmodes_vol.primitives import bend, capsule, icosphere
 
+# both optimizers, 10 steps per stage, on the full grid (so accepted energies compare)
 OPTS = mm.RegistrationOptions(grid=12, modes=3, max_iterations=30, stall_start=1e-9, stall_end=1e-9,
-                              max_iterations_per_stage=10)
+                              max_iterations_per_stage=10, lm_iterations_per_stage=10,
+                              lm_stall_decrease=0.0, quadrature="full")
 
 
 class FaultyEnergy:
@@ -38,11 +40,11 @@ class FaultyEnergy:
         return EnergyEvaluation(ev.energy, grad, ev.residual)
 
 
-@pytest.fixture(scope="module")
-def reg():
+@pytest.fixture(scope="module", params=["paper", "lm"])
+def reg(request):
     V, F = capsule(count=(8, 8))
     V = V * [1.0, 0.6, 1.0]
-    return mm.Registration((V, F), (bend(V, np.deg2rad(40)), F), OPTS)
+    return mm.Registration((V, F), (bend(V, np.deg2rad(40)), F), OPTS.replace(optimizer=request.param))
 
 
 @pytest.fixture(scope="module")

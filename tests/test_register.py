@@ -48,8 +48,11 @@ def test_recovers_smooth_bend_and_energy_never_increases():
     m = result.metrics
     assert m["ground_truth_error"] <= m["identity_error"] / 3
     assert m["final_sdf_rms"] < 0.2 * m["initial_sdf_rms"]
-    energies = np.asarray(result.history.energy)
-    assert np.all(np.diff(energies) <= 0)  # Armijo: accepted steps never increase E
+    # accepted steps never increase E (except across a refresh of the band quadrature)
+    steps = np.diff(np.asarray(result.history.energy))
+    same_quadrature = np.setdiff1d(np.arange(steps.size), result.history.refreshes)
+    assert same_quadrature.size > steps.size // 2
+    assert np.all(steps[same_quadrature] <= 0)
     assert len(result.history.stage_starts) == result.modes == 10
     # inputs untouched
     np.testing.assert_array_equal(V, V_in)
@@ -97,11 +100,13 @@ def test_one_call_and_object_agree_and_options_are_checked():
         mm.register((V, F), (V, F), not_an_option=3)
 
 
-def test_iteration_caps_and_stage_bookkeeping():
+@pytest.mark.parametrize("optimizer", ["paper", "lm"])
+def test_iteration_caps_and_stage_bookkeeping(optimizer):
     V, F = flat_capsule()
     target = bend(V, np.deg2rad(40))
-    r = mm.register((V, F), (target, F), grid=16, modes=6, max_iterations=10,
-                    max_iterations_per_stage=5, stall_start=1e-9, stall_end=1e-9)
+    caps = dict(max_iterations_per_stage=5, lm_iterations_per_stage=5, lm_stall_decrease=0.0)
+    r = mm.register((V, F), (target, F), grid=16, modes=6, max_iterations=10, optimizer=optimizer,
+                    stall_start=1e-9, stall_end=1e-9, **caps)
     h = r.history
     assert r.status == "max_iterations"
     assert r.modes == 2 and r.T.shape == (2, 3, 4)  # no empty third mode
@@ -109,6 +114,7 @@ def test_iteration_caps_and_stage_bookkeeping():
     assert len(h.step_rms) == 10 and h.modes == [1] * 5 + [2] * 5
     assert len(h.stage_seconds) == 2 and sum(h.stage_evaluations) + 1 == h.evaluations
     r = mm.register((V, F), (target, F), grid=16, modes=2, max_iterations_per_stage=3,
+                    lm_iterations_per_stage=3, lm_stall_decrease=0.0, optimizer=optimizer,
                     stall_start=1e-9, stall_end=1e-9)
     assert r.status == "stage_cap" and r.modes == 2
 
@@ -116,7 +122,8 @@ def test_iteration_caps_and_stage_bookkeeping():
 def test_paper_plain_gradient_step_also_descends():
     V, F = flat_capsule()
     target = V * [1.1, 1.0, 1.05]
-    r = mm.register((V, F), (target, F), grid=16, modes=3, preconditioner="none", ground_truth=target)
+    r = mm.register((V, F), (target, F), grid=16, modes=3, optimizer="paper", quadrature="full",
+                    preconditioner="none", ground_truth=target)
     assert r.history.energy[-1] < 0.5 * r.history.energy[0]
     assert np.all(np.diff(r.history.energy) <= 0)
 

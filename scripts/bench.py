@@ -1,0 +1,196 @@
+"""Speed benchmark: ours (default settings and ``--optimizer paper``) against trimesh's
+non-rigid ICP (Amberg et al. 2007, ``trimesh.registration.nricp_amberg`` with its defaults),
+in one run, on the same machine.
+
+    python scripts/bench.py [--pairs 05 01] [--out results/bench] [--set grid=64 ...]
+    make bench
+
+Pairs: lion-reference onto lion-05 and lion-01 from ``../shared/data`` (or
+``$MORPHMODES_DATA``); without the data, a generated capsule onto a bent, stretched copy.
+Every method runs in a fresh child process, one after the other (never two at once), so its
+wall time and peak resident memory are its own. Wall time covers everything from file paths
+to written results: loading, preprocessing, target SDF, eigenbasis, optimization and export
+for ours; loading and the registration call for NRICP.
+
+Prints a markdown table and writes ``<out>/bench.json`` and ``<out>/bench.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import concurrent.futures as cf
+import json
+import multiprocessing as mp
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _data import ROOT, data_dir  # noqa: E402
+
+
+def _peak_rss_mb() -> float:
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+
+
+def _load(path_or_pair):
+    import morphmodes_vol as mm
+
+    if isinstance(path_or_pair, tuple):
+        return path_or_pair
+    return mm.as_mesh(path_or_pair, str(path_or_pair))
+
+
+def run_ours(source, target, truth, overrides: dict) -> dict:
+    """One registration with our method, timed stage by stage (runs in a child process)."""
+    import numpy as np
+
+    import morphmodes_vol as mm
+
+    t0 = time.perf_counter()
+    options = mm.RegistrationOptions().replace(**overrides)
+    reg = mm.Registration(_load(source), _load(target), options)
+    result = reg.run()
+    t = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        mm.write_outputs(result, tmp)
+    export = time.perf_counter() - t
+    wall = time.perf_counter() - t0
+    truth_V = np.asarray(_load(truth)[0])
+    h = result.history
+    timings = dict(result.timings)
+    timings["export"] = export
+    return {
+        "wall_s": wall,
+        "error": mm.ground_truth_error(result.vertices, truth_V),
+        "identity_error": mm.ground_truth_error(reg.source_vertices, truth_V),
+        "evaluations": h.evaluations,
+        "refreshes": len(h.refreshes),
+        "steps": len(h.step_rms),
+        "modes": result.modes,
+        "status": result.status,
+        "seconds_per_evaluation": timings["sdf_queries"] / max(h.evaluations, 1),
+        "sdf_share_of_optimize": timings["sdf_queries"] / max(timings["optimize"], 1e-12),
+        "timings": timings,
+        "peak_rss_mb": _peak_rss_mb(),
+        "options": options.to_dict(),
+    }
+
+
+def run_nricp(source, target, truth) -> dict:
+    """trimesh's ``nricp_amberg`` with its defaults (runs in a child process)."""
+    import numpy as np
+    import trimesh
+
+    import morphmodes_vol as mm
+
+    t0 = time.perf_counter()
+    V, F = _load(source)
+    TV, TF = _load(target)
+    out = trimesh.registration.nricp_amberg(
+        trimesh.Trimesh(V, F, process=False), trimesh.Trimesh(TV, TF, process=False)
+    )
+    wall = time.perf_counter() - t0
+    truth_V = np.asarray(_load(truth)[0])
+    return {
+        "wall_s": wall,
+        "error": mm.ground_truth_error(np.asarray(out), truth_V),
+        "identity_error": mm.ground_truth_error(V, truth_V),
+        "peak_rss_mb": _peak_rss_mb(),
+    }
+
+
+def _in_child(fn, *args) -> dict:
+    """Run ``fn(*args)`` in a fresh process (spawned: no state shared with earlier runs)."""
+    with cf.ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn")) as ex:
+        return ex.submit(fn, *args).result()
+
+
+def pairs(selected: list[str]) -> list[tuple[str, object, object]]:
+    """``(name, source, target)``; target is also the ground truth (same vertex order)."""
+    data = data_dir()
+    if data is None:
+        from morphmodes_vol.demo import demo_pair
+
+        source, target = demo_pair()
+        return [("capsule -> bent capsule (generated)", source, target)]
+    lion = data / "lion-poses"
+    return [(f"lion-reference -> lion-{p}", lion / "lion-reference.obj", lion / f"lion-{p}.obj")
+            for p in selected]
+
+
+def _row(pair: str, method: str, r: dict, nricp_wall: float | None) -> str:
+    ratio = f"{r['wall_s'] / nricp_wall:.2f}" if nricp_wall else ""
+    ev = r.get("evaluations", "")
+    spe = f"{1000 * r['seconds_per_evaluation']:.0f}" if "seconds_per_evaluation" in r else ""
+    share = f"{100 * r['sdf_share_of_optimize']:.0f}%" if "sdf_share_of_optimize" in r else ""
+    stages = ""
+    if "timings" in r:
+        t = r["timings"]
+        stages = " / ".join(f"{t[k]:.1f}" for k in
+                            ("preprocess", "target_sdf", "eigenbasis", "optimize", "export"))
+    return (f"| {pair} | {method} | {r['identity_error']:.4f} | {r['error']:.4f} | "
+            f"{r['wall_s']:.1f} | {ratio} | {ev} | {spe} | {share} | {stages} | "
+            f"{r['peak_rss_mb']:.0f} |")
+
+
+HEADER = ("| pair | method | identity error | error | wall s | / NRICP | SDF evals | ms / eval "
+          "| SDF share | preprocess / target SDF / eigenbasis / optimize / export (s) "
+          "| peak RSS MB |\n|---|---|---|---|---|---|---|---|---|---|---|")
+
+
+def main() -> int:
+    import ast
+
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--pairs", nargs="*", default=["05", "01"], help="lion poses")
+    ap.add_argument("--out", default=str(ROOT / "results" / "bench"))
+    ap.add_argument("--set", nargs="*", default=[], metavar="OPTION=VALUE",
+                    help="override options of *both* of our runs, e.g. --set grid=48")
+    ap.add_argument("--methods", nargs="*", default=["default", "paper", "nricp"],
+                    choices=["default", "paper", "nricp"])
+    args = ap.parse_args()
+    overrides = {}
+    for item in args.set:
+        key, _, value = item.partition("=")
+        try:
+            overrides[key] = ast.literal_eval(value)
+        except (ValueError, SyntaxError):
+            overrides[key] = value
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    report = {"machine": {"python": platform.python_version(), "cpus": mp.cpu_count(),
+                          "platform": platform.platform()},
+              "overrides": overrides, "results": []}
+    lines = [HEADER]
+    print(HEADER, flush=True)
+    for name, source, target in pairs(args.pairs):
+        results = {}
+        if "nricp" in args.methods:
+            results["trimesh nricp_amberg"] = _in_child(run_nricp, source, target, target)
+        if "default" in args.methods:
+            results["ours, default"] = _in_child(run_ours, source, target, target, overrides)
+        if "paper" in args.methods:
+            results["ours, --optimizer paper"] = _in_child(
+                run_ours, source, target, target,
+                {**overrides, "optimizer": "paper", "quadrature": "full"})
+        nricp_wall = results.get("trimesh nricp_amberg", {}).get("wall_s")
+        for method, r in results.items():
+            line = _row(name, method, r, nricp_wall)
+            lines.append(line)
+            print(line, flush=True)
+            report["results"].append({"pair": name, "method": method, **r})
+    (out / "bench.json").write_text(json.dumps(report, indent=2, default=str))
+    (out / "bench.md").write_text("\n".join(lines) + "\n")
+    print(f"wrote {out / 'bench.json'} and {out / 'bench.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
