@@ -16,8 +16,9 @@ import numpy as np
 
 from .eigenbasis import LBSBasis, mesh_skinning_weights, to_paper_z
 from .energy import SDFEnergy
-from .errors import MeshValidationError, OptionError
+from .errors import OptionError
 from .mesh import MeshLike, Normalization, as_mesh, bbox_diagonal, joint_normalization
+from .metrics import ground_truth_error, shape_metrics
 from .options import RegistrationOptions
 from .optimize import OptimizationHistory, ProgressEvent, optimize_adaptive
 from .sdf import DenseTargetSDF, Grid, closest_points
@@ -32,24 +33,6 @@ def _is_closed(F: np.ndarray) -> bool:
     edges = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
     _, counts = np.unique(edges, axis=0, return_counts=True)
     return bool(np.all(counts == 2))
-
-
-def ground_truth_error(registered: np.ndarray, truth: np.ndarray) -> float:
-    """``mean_i ||registered_i - truth_i|| / bbox_diagonal(truth)`` (shared/data README).
-
-    Parameters
-    ----------
-    registered, truth : (n, 3) float
-        Same vertex count and order.
-    """
-    registered = np.asarray(registered, dtype=np.float64)
-    truth = np.asarray(truth, dtype=np.float64)
-    if registered.shape != truth.shape:
-        raise MeshValidationError(
-            f"ground truth has shape {truth.shape}, the registered mesh {registered.shape}: "
-            "ground-truth error needs the same vertex count and order"
-        )
-    return float(np.mean(np.linalg.norm(registered - truth, axis=1)) / bbox_diagonal(truth))
 
 
 @dataclass
@@ -236,7 +219,11 @@ class Registration:
         if ground_truth is not None:
             truth = ground_truth if isinstance(ground_truth, np.ndarray) else as_mesh(ground_truth, "ground truth")[0]
             metrics["identity_error"] = ground_truth_error(self.source_vertices, truth)
-            metrics["ground_truth_error"] = ground_truth_error(vertices, truth)
+        else:
+            truth = None
+        # surface distance, degeneracy and ground-truth error (morphmodes_vol.metrics)
+        metrics.update(shape_metrics(self.X0, out.vertices, self.source_faces, self.Y,
+                                     self.target_faces, None if truth is None else self.normalization.apply(truth)))
 
         return RegistrationResult(
             vertices=vertices,
