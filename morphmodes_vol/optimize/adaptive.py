@@ -71,6 +71,9 @@ class OptimizationHistory:
         Wall time of each stage.
     stage_evaluations : list of int
         Source-SDF evaluations spent in each stage.
+    stage_coefficients : list of (m, 3, 4) float64
+        The coefficients ``T`` at the end of each stage (the global-to-local sequence of
+        the paper's donkey-to-horse figure); kept in memory, not in ``to_dict``.
     evaluations : int
         Number of full source-SDF evaluations.
     """
@@ -82,6 +85,7 @@ class OptimizationHistory:
     stage_ends: list = field(default_factory=list)
     stage_seconds: list = field(default_factory=list)
     stage_evaluations: list = field(default_factory=list)
+    stage_coefficients: list = field(default_factory=list)
     evaluations: int = 0
 
     def to_dict(self) -> dict:
@@ -167,7 +171,8 @@ def optimize_adaptive(
     current = energy.evaluate(basis.X0)
     initial = current
     history.energy.append(current.energy)
-    T = np.zeros((0, 3, 4))
+    m0 = min(options.initial_modes, m_max)  # 1 in Algorithm 1; m_max for a fixed subspace
+    T = np.zeros((m0 - 1, 3, 4))
     iteration = 0
     status: Status = "converged"
 
@@ -187,7 +192,7 @@ def optimize_adaptive(
                 )
             )
 
-    for stage in range(m_max):
+    for stage in range(m0 - 1, m_max):
         if iteration >= options.max_iterations:
             status = "max_iterations"
             break
@@ -246,6 +251,7 @@ def optimize_adaptive(
             # warm start: try a longer step next time if this one needed no backtracking
             alpha = ls.step / options.backtrack if ls.trials == 1 else ls.step
         history.stage_ends.append(end)
+        history.stage_coefficients.append(T.copy())
         history.stage_seconds.append(time.perf_counter() - stage_t0)
         history.stage_evaluations.append(energy.evaluations - stage_evals)
         log.info(
