@@ -137,3 +137,33 @@ def add_common(ap, grid: int = 48, modes: int = 20) -> None:
                     help="override RegistrationOptions fields, e.g. --set preconditioner=none")
     ap.add_argument("--out", default=None, help="output folder (default results/<experiment>)")
     ap.add_argument("--plot-only", action="store_true", help="redraw plots from saved results")
+
+
+def start(ap, name: str, pair: bool = True):
+    """Parse the arguments (after :func:`add_common`); returns ``args, out, store`` and, with
+    ``pair``, the paths of ``--source`` and ``--target``."""
+    args = ap.parse_args()
+    out = out_dir(name, args.out)
+    store = MeshStore(out, reset=not args.plot_only)
+    if not pair:
+        return args, out, store
+    return args, out, store, mesh_path(args.source), mesh_path(args.target)
+
+
+def line_plot(path: Path, series: list[tuple], xlabel: str, ylabel: str, dpi: int = 90) -> None:
+    """One small line plot: ``series`` of ``(xs, ys, style, label, plot_kwargs)``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 3.2))
+    for xs, ys, style, label, kw in series:
+        ax.plot(xs, ys, style, label=label, **kw)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)

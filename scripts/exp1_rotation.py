@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _exp import (METRIC_COLUMNS, MeshStore, add_common, load_rows, mesh_path, options_from,  # noqa: E402
-                  out_dir, rotation, row_of, save_meta, write_table)
+from _exp import (METRIC_COLUMNS, MeshStore, add_common, line_plot, load_rows, options_from,  # noqa: E402
+                  rotation, row_of, save_meta, start, write_table)
 
 import morphmodes_vol as mm  # noqa: E402
 from morphmodes_vol.baselines import nricp, prepare_pair  # noqa: E402
@@ -61,25 +61,15 @@ def summary(rows: list[dict]) -> str:
 
 def plots(out: Path, rows: list[dict], store: MeshStore, source: Path, target: Path, axis: int,
           render_angles: list[float]) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(5, 3.2))
+    series = []
     for method, style in zip(METHODS, ("o--", "s-")):
         pts = sorted((r["angle"], r["ground_truth_error"]) for r in rows if r["method"] == method)
         if pts:
-            ax.plot(*zip(*pts), style, label=method)
+            series.append((*zip(*pts), style, method, {}))
     pts = sorted({(r["angle"], r["identity_error"]) for r in rows})
-    ax.plot(*zip(*pts), ":", color="gray", label="identity (no registration)")
-    ax.set_xlabel("initial rotation about the forward axis (degrees)")
-    ax.set_ylabel("ground-truth error / target diagonal")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(out / "exp1_error_vs_angle.png", dpi=100)
-    plt.close(fig)
+    series.append((*zip(*pts), ":", "identity (no registration)", {"color": "gray"}))
+    line_plot(out / "exp1_error_vs_angle.png", series, "initial rotation about the forward axis (degrees)",
+              "ground-truth error / target diagonal", dpi=100)
 
     V0, F = load_mesh(source)
     Vt, Ft = load_mesh(target)
@@ -107,10 +97,7 @@ def main() -> int:
     ap.add_argument("--render-angles", type=float, nargs="*", default=None,
                     help="angles drawn in exp1_renders.png (default: first, 0 if run, last)")
     add_common(ap)
-    args = ap.parse_args()
-    out = out_dir("exp1_rotation", args.out)
-    source, target = mesh_path(args.source), mesh_path(args.target)
-    store = MeshStore(out, reset=not args.plot_only)
+    args, out, store, source, target = start(ap, "exp1_rotation")
     render_angles = args.render_angles
     if render_angles is None:
         render_angles = sorted({args.angles[0], args.angles[-1]} | ({0.0} & set(args.angles)))

@@ -25,8 +25,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _exp import (METRIC_COLUMNS, MeshStore, add_common, load_rows, mesh_path, options_from,  # noqa: E402
-                  out_dir, row_of, save_meta, write_table)
+from _exp import (METRIC_COLUMNS, MeshStore, add_common, load_rows, options_from, row_of,  # noqa: E402
+                  save_meta, start, write_table)
 
 import morphmodes_vol as mm  # noqa: E402
 from morphmodes_vol.baselines import fixed_subspace, full_space_sdf, prepare_pair  # noqa: E402
@@ -103,10 +103,7 @@ def main() -> int:
                     help="take the adaptive run from experiment 1's unrotated run (angle 0, same pair "
                          "and options) instead of registering again; its metrics are recomputed here")
     add_common(ap)
-    args = ap.parse_args()
-    out = out_dir("exp2_adaptive", args.out)
-    source, target = mesh_path(args.source), mesh_path(args.target)
-    store = MeshStore(out, reset=not args.plot_only)
+    args, out, store, source, target = start(ap, "exp2_adaptive")
     if args.plot_only:
         plots(out, load_rows(out, "exp2_methods"), store, source, target)
         return 0

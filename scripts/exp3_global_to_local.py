@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _exp import MeshStore, add_common, load_rows, mesh_path, options_from, out_dir, save_meta, write_table  # noqa: E402
+from _exp import MeshStore, add_common, line_plot, load_rows, options_from, save_meta, start, write_table  # noqa: E402
 
 import morphmodes_vol as mm  # noqa: E402
 from morphmodes_vol.eigenbasis import LBSBasis  # noqa: E402
@@ -34,22 +34,11 @@ COLUMNS = [("modes", "modes", "{:.0f}"), ("end", "stage end", "{}"), ("evaluatio
 
 
 def plots(out: Path, rows: list[dict], store: MeshStore, source: Path, target: Path, strip: list[int]) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(5, 3.2))
     m = [r["modes"] for r in rows]
-    ax.plot(m, [r["ground_truth_error"] for r in rows], "o-", label="ground-truth error")
-    ax.plot(m, [r["final_sdf_rms"] for r in rows], "s--", label="SDF residual RMS")
-    ax.set_xlabel("modes (end of stage)")
-    ax.set_ylabel("fraction of the diagonal")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(out / "exp3_stages.png", dpi=90)
-    plt.close(fig)
+    line_plot(out / "exp3_stages.png",
+              [(m, [r["ground_truth_error"] for r in rows], "o-", "ground-truth error", {}),
+               (m, [r["final_sdf_rms"] for r in rows], "s--", "SDF residual RMS", {})],
+              "modes (end of stage)", "fraction of the diagonal")
 
     V0, F = load_mesh(source)
     Vt, Ft = load_mesh(target)
@@ -70,10 +59,7 @@ def main() -> int:
     ap.add_argument("--target", default="lion-02")
     ap.add_argument("--strip", type=int, nargs="*", default=[1, 2, 3, 5, 10, 20], help="stages drawn")
     add_common(ap)
-    args = ap.parse_args()
-    out = out_dir("exp3_global_to_local", args.out)
-    source, target = mesh_path(args.source), mesh_path(args.target)
-    store = MeshStore(out, reset=not args.plot_only)
+    args, out, store, source, target = start(ap, "exp3_global_to_local")
     if args.plot_only:
         plots(out, load_rows(out, "exp3_stages"), store, source, target, args.strip)
         return 0

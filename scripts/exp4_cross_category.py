@@ -16,7 +16,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _exp import (METRIC_COLUMNS, MeshStore, add_common, load_rows, mesh_path, options_from,  # noqa: E402
-                  out_dir, row_of, save_meta, write_table)
+                  row_of, save_meta, start, write_table)
 
 import morphmodes_vol as mm  # noqa: E402
 from morphmodes_vol.baselines import nricp, prepare_pair  # noqa: E402
@@ -50,10 +50,8 @@ def main() -> int:
     ap.add_argument("--pairs", nargs="+", default=["cat-reference:lion-reference", "lion-reference:cat-reference"],
                     help="SOURCE:TARGET mesh names")
     add_common(ap)
-    args = ap.parse_args()
-    out = out_dir("exp4_cross_category", args.out)
+    args, out, store = start(ap, "exp4_cross_category", pair=False)
     pairs = [tuple(p.split(":")) for p in args.pairs]
-    store = MeshStore(out, reset=not args.plot_only)
     if args.plot_only:
         load_rows(out, "exp4_runs")
         plots(out, pairs, store)
