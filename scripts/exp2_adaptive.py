@@ -50,7 +50,7 @@ def plots(out: Path, rows: list[dict], store: MeshStore, source: Path, target: P
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
     axes[0].bar(x, [r["ground_truth_error"] for r in rows], color="tab:blue")
     axes[0].axhline(rows[0]["identity_error"], color="gray", ls=":", label="identity")
-    axes[0].set_ylabel("ground-truth error / target diagonal")
+    axes[0].set_ylabel("GT error / target diagonal")
     axes[0].legend(fontsize=8)
     axes[1].bar(x - 0.2, [100 * r["flipped_fraction"] for r in rows], 0.4, label="flipped")
     axes[1].bar(x + 0.2, [100 * r["collapsed_fraction"] for r in rows], 0.4, label="collapsed")
