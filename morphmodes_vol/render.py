@@ -145,7 +145,7 @@ def render_panels(
 
     ncol = columns or len(panels)
     nrow = -(-len(panels) // ncol)
-    fig = plt.figure(figsize=(panel_size * ncol + (0.8 if valued else 0), panel_size * nrow + 0.3))
+    fig = plt.figure(figsize=(panel_size * ncol + (1.0 if valued else 0), panel_size * nrow + 0.3))
     fig.subplots_adjust(left=0, right=1, bottom=0.07 if suptitle else 0, top=1 - 0.3 / fig.get_figheight(), wspace=0, hspace=0.08)
     for k, (panel, V) in enumerate(zip(panels, frames)):
         ax = fig.add_subplot(nrow, ncol, k + 1, projection="3d")
@@ -168,8 +168,8 @@ def render_panels(
         ax.set_axis_off()
         ax.set_title(panel.title, fontsize=9)
     if valued:
-        fig.subplots_adjust(right=1 - 0.8 / fig.get_figwidth())
-        cax = fig.add_axes([1 - 0.6 / fig.get_figwidth(), 0.15, 0.15 / fig.get_figwidth(), 0.7])
+        fig.subplots_adjust(right=1 - 1.0 / fig.get_figwidth())
+        cax = fig.add_axes([1 - 0.9 / fig.get_figwidth(), 0.15, 0.15 / fig.get_figwidth(), 0.7])
         fig.colorbar(mpl.cm.ScalarMappable(norm=norm, cmap=cmap), cax=cax, label=colorbar_label)
     if suptitle:
         fig.text(0.5, 0.01, suptitle, ha="center", va="bottom", fontsize=9)  # a caption

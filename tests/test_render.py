@@ -34,7 +34,7 @@ def test_render_panels_sizes_and_errors(tmp_path, sphere):
     path = render_panels([Panel(V, F, "plain"), Panel(V, F, "colored", V[:, 0] ** 2)], tmp_path / "a.png",
                          panel_size=2.0, dpi=50)
     w, h = png_size(path)
-    assert w == int(round((2 * 2.0 + 0.8) * 50)) and h == int(round((2.0 + 0.3) * 50))
+    assert w == int(round((2 * 2.0 + 1.0) * 50)) and h == int(round((2.0 + 0.3) * 50))
     path = render_panels([Panel(V, F, str(k)) for k in range(3)], tmp_path / "b.png", columns=2,
                          panel_size=1.0, dpi=50)
     assert png_size(path) == (100, int(round(2.3 * 50)))  # 2 rows, no colorbar
