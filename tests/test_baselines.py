@@ -105,3 +105,14 @@ def test_initial_modes_option(small_capsule):
     shapes = [T.shape for T in r.history.stage_coefficients]
     assert shapes == [(2, 3, 4), (3, 3, 4), (4, 3, 4)]
     np.testing.assert_array_equal(r.history.stage_coefficients[-1], r.T)
+
+
+@pytest.mark.realdata
+@pytest.mark.slow
+def test_ricp_nricp_on_a_lion_pose(data_dir):
+    src = data_dir / "lion-poses" / "lion-reference.obj"
+    tgt = data_dir / "lion-poses" / "lion-01.obj"
+    r = nricp(src, tgt, rigid_first=True, ground_truth=tgt, options=mm.RegistrationOptions(grid=16))
+    m = r.metrics
+    assert m["ground_truth_error"] < 0.75 * m["identity_error"]
+    assert m["surface_mean"] < 0.05 and 0 < m["volume_ratio"] < 2
