@@ -59,7 +59,9 @@ class RegistrationResult:
         Seconds per stage: ``preprocess``, ``target_sdf``, ``eigenbasis``, ``optimize``,
         ``correspondence``.
     metrics : dict of str to float
-        Energies, RMS SDF residuals, and ground-truth errors when a ground truth was given.
+        Energies, RMS SDF residuals, surface distance and degeneracy
+        (:func:`morphmodes_vol.metrics.shape_metrics`), and ground-truth errors when a ground
+        truth was given.
     correspondence_faces : (n,) int64
         For every registered vertex, the closest target face.
     correspondence_barycentrics : (n, 3) float64
@@ -219,11 +221,9 @@ class Registration:
         if ground_truth is not None:
             truth = ground_truth if isinstance(ground_truth, np.ndarray) else as_mesh(ground_truth, "ground truth")[0]
             metrics["identity_error"] = ground_truth_error(self.source_vertices, truth)
-        else:
-            truth = None
-        # surface distance, degeneracy and ground-truth error (morphmodes_vol.metrics)
-        metrics.update(shape_metrics(self.X0, out.vertices, self.source_faces, self.Y,
-                                     self.target_faces, None if truth is None else self.normalization.apply(truth)))
+            metrics["ground_truth_error"] = ground_truth_error(vertices, truth)
+        # surface distance and degeneracy (morphmodes_vol.metrics)
+        metrics.update(shape_metrics(self.X0, out.vertices, self.source_faces, self.Y, self.target_faces))
 
         return RegistrationResult(
             vertices=vertices,
