@@ -1,4 +1,4 @@
-"""The ``morphmodes-vol`` command line: ``register``, ``demo``, ``run``, ``sdf``.
+"""The ``morphmodes-vol`` command line: ``register``, ``demo``, ``run``, ``sdf``, ``render``.
 
 Errors caused by the input (a bad mesh file, an invalid option) print one line on stderr
 and exit with code 2; ``-v`` shows the traceback too.
@@ -269,6 +269,57 @@ def cmd_sdf(args) -> int:
     return 0
 
 
+def _render_inputs(args):
+    """Panels of ``render``: each INPUT is a result folder (its ``registered.*``, colored by
+    the per-vertex error against ``--ground-truth`` or the report's ground truth) or a mesh."""
+    import json
+
+    from .mesh import load_mesh
+    from .metrics import vertex_errors
+    from .render import Panel
+
+    truth = load_mesh(args.ground_truth)[0] if args.ground_truth else None
+    panels = []
+    for item in args.inputs:
+        path = Path(item)
+        inputs, gt = {}, truth
+        if path.is_dir():
+            meshes = sorted(path.glob("registered.*"))
+            if not meshes or not (path / "report.json").is_file():
+                raise MorphModesError(f"{path}: not a complete result folder (no registered.* or report.json)")
+            inputs = json.loads((path / "report.json").read_text()).get("inputs", {})
+            if gt is None and inputs.get("ground_truth") and Path(inputs["ground_truth"]).is_file():
+                gt = load_mesh(inputs["ground_truth"])[0]
+            if args.with_inputs:
+                for key in ("source", "target"):
+                    if inputs.get(key) and Path(inputs[key]).is_file():
+                        panels.append(Panel(*load_mesh(inputs[key]), f"{key}: {Path(inputs[key]).stem}"))
+            title, mesh = path.name, meshes[0]
+        else:
+            title, mesh = path.stem, path
+        V, F = load_mesh(mesh)
+        values = None
+        if gt is not None:
+            if gt.shape != V.shape:
+                raise MorphModesError(f"{mesh}: {V.shape[0]} vertices, the ground truth {gt.shape[0]}: "
+                                      "per-vertex error needs the same vertex count and order")
+            values = vertex_errors(V, gt)
+            title = f"{title} ({values.mean():.4f})"
+        panels.append(Panel(V, F, title, values))
+    return panels
+
+
+def cmd_render(args) -> int:
+    from .render import render_panels
+
+    panels = _render_inputs(args)
+    path = render_panels(panels, args.output, up=args.up, elev=args.elev, azim=args.azim,
+                         vmax=args.max_error, columns=args.columns)
+    colored = sum(p.values is not None for p in panels)
+    print(f"wrote {path} ({len(panels)} panels, {colored} colored by ground-truth error)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     d = RegistrationOptions()
     parser = argparse.ArgumentParser(
@@ -320,6 +371,20 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"inside test: winding number or ray parity (default {d.target_sign})")
     p.add_argument("-v", "--verbose", action="store_true", help="log details and show tracebacks")
     p.set_defaults(func=cmd_sdf)
+    p = sub.add_parser("render", help="draw result folders or meshes into a PNG (offscreen, matplotlib)")
+    p.add_argument("inputs", nargs="+", metavar="RESULT_DIR_OR_MESH",
+                   help="result folders of `register` (their registered.*) or mesh files, one panel each")
+    p.add_argument("-o", "--output", required=True, help="output PNG")
+    p.add_argument("--ground-truth", default=None,
+                   help="color by per-vertex error against this mesh (default: a result's own ground truth)")
+    p.add_argument("--with-inputs", action="store_true", help="also draw each result's source and target")
+    p.add_argument("--up", choices=["x", "y", "z"], default="y", help="up axis of the meshes (default y)")
+    p.add_argument("--elev", type=float, default=15.0, help="camera elevation, degrees (default 15)")
+    p.add_argument("--azim", type=float, default=-60.0, help="camera azimuth, degrees (default -60)")
+    p.add_argument("--max-error", type=float, default=None, help="top of the color scale (default: 99th percentile)")
+    p.add_argument("--columns", type=int, default=None, help="panels per row (default: all in one row)")
+    p.add_argument("-v", "--verbose", action="store_true", help="log details and show tracebacks")
+    p.set_defaults(func=cmd_render)
     return parser
 
 

@@ -55,6 +55,11 @@ class RegistrationOptions:
         Margin added on every side of the union bounding box, as a fraction of its diagonal.
     modes : int
         ``m_max``, the largest number of skinning eigenmodes (12 degrees of freedom each).
+    initial_modes : int
+        Modes active from the start. Algorithm 1 starts with ``1`` (a global affine map,
+        the default); ``initial_modes == modes`` optimizes in a *fixed* subspace of
+        ``modes`` modes in one stage (the fixed-subspace baseline of the paper's
+        "Necessity of adaptive scheme"; ``morphmodes_vol.baselines.fixed_subspace``).
     stall_start, stall_end : float
         Stall threshold ``eps_stall`` of Algorithm 1 for the first and the last stage; stages
         in between decay geometrically. Measured as the root-mean-square vertex motion of
@@ -130,6 +135,7 @@ class RegistrationOptions:
     band_margin_cells: float = 4.0
     padding: float = 0.1
     modes: int = 20
+    initial_modes: int = 1
     stall_start: float = 1.4e-3
     stall_end: float = 1.4e-5
     max_iterations_per_stage: int = 60
@@ -178,6 +184,8 @@ class RegistrationOptions:
         need(self.band_margin_cells > 0, "band_margin_cells", "a positive float")
         need(0.0 <= self.padding <= 2.0, "padding", "a float in [0, 2]")
         need(_is_int(self.modes) and 1 <= self.modes <= 500, "modes", "an integer in [1, 500]")
+        need(_is_int(self.initial_modes) and 1 <= self.initial_modes <= self.modes,
+             "initial_modes", f"an integer in [1, modes={self.modes}]")
         need(self.stall_start > 0, "stall_start", "a positive float")
         need(0 < self.stall_end <= self.stall_start, "stall_end", "a float in (0, stall_start]")
         need(_is_int(self.max_iterations_per_stage) and self.max_iterations_per_stage >= 1,

@@ -17,9 +17,10 @@ import numpy as np
 
 from .eigenbasis import LBSBasis, mesh_skinning_weights, to_paper_z
 from .energy import SDFEnergy
-from .errors import MeshValidationError, OptionError
+from .errors import OptionError
 from .mesh import MeshLike, Normalization, as_mesh, bbox_diagonal, joint_normalization
 from .limits import check_memory, estimate_memory
+from .metrics import ground_truth_error, shape_metrics
 from .options import RegistrationOptions
 from .quadrature import BandEnergy
 from .repair import sdf_faces
@@ -42,24 +43,6 @@ def _is_closed(F: np.ndarray) -> bool:
 def _label(mesh, default: str) -> str:
     """A file name for messages, or ``default`` for in-memory meshes."""
     return str(mesh) if isinstance(mesh, (str, os.PathLike)) else default
-
-
-def ground_truth_error(registered: np.ndarray, truth: np.ndarray) -> float:
-    """``mean_i ||registered_i - truth_i|| / bbox_diagonal(truth)`` (shared/data README).
-
-    Parameters
-    ----------
-    registered, truth : (n, 3) float
-        Same vertex count and order.
-    """
-    registered = np.asarray(registered, dtype=np.float64)
-    truth = np.asarray(truth, dtype=np.float64)
-    if registered.shape != truth.shape:
-        raise MeshValidationError(
-            f"ground truth has shape {truth.shape}, the registered mesh {registered.shape}: "
-            "ground-truth error needs the same vertex count and order"
-        )
-    return float(np.mean(np.linalg.norm(registered - truth, axis=1)) / bbox_diagonal(truth))
 
 
 @dataclass
@@ -87,7 +70,9 @@ class RegistrationResult:
         Seconds per stage: ``preprocess``, ``target_sdf``, ``eigenbasis``, ``optimize``,
         ``correspondence``.
     metrics : dict of str to float
-        Energies, RMS SDF residuals, and ground-truth errors when a ground truth was given.
+        Energies, RMS SDF residuals, surface distance and degeneracy
+        (:func:`morphmodes_vol.metrics.shape_metrics`), and ground-truth errors when a ground
+        truth was given.
     correspondence_faces : (n,) int64 or None
         For every registered vertex, the closest target face (``None`` when the target was
         given as an SDF grid: it has no faces).
@@ -334,6 +319,10 @@ class Registration:
             truth = ground_truth if isinstance(ground_truth, np.ndarray) else as_mesh(ground_truth, "ground truth")[0]
             metrics["identity_error"] = ground_truth_error(self.source_vertices, truth)
             metrics["ground_truth_error"] = ground_truth_error(vertices, truth)
+        # surface distance and degeneracy (morphmodes_vol.metrics); a target given as an SDF
+        # grid has no surface mesh to measure against
+        if self.Y is not None:
+            metrics.update(shape_metrics(self.X0, out.vertices, self.source_faces, self.Y, self.target_faces))
 
         return RegistrationResult(
             vertices=vertices,

@@ -2,8 +2,21 @@
 
 from __future__ import annotations
 
+import ast
 from pathlib import Path
 
 from morphmodes_vol.datasets import shared_data_dir as data_dir  # noqa: F401
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+def parse_overrides(items: list[str]) -> dict:
+    """``["grid=48", "preconditioner=none"]`` -> ``{"grid": 48, "preconditioner": "none"}``."""
+    out = {}
+    for item in items:
+        key, _, value = item.partition("=")
+        try:
+            out[key] = ast.literal_eval(value)
+        except (ValueError, SyntaxError):
+            out[key] = value
+    return out

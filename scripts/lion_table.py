@@ -17,22 +17,9 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _data import ROOT, data_dir  # noqa: E402
+from _data import ROOT, data_dir, parse_overrides  # noqa: E402
 
 import morphmodes_vol as mm  # noqa: E402
-
-
-def _parse_overrides(items: list[str]) -> dict:
-    import ast
-
-    out = {}
-    for item in items:
-        key, _, value = item.partition("=")
-        try:
-            out[key] = ast.literal_eval(value)
-        except (ValueError, SyntaxError):
-            out[key] = value
-    return out
 
 
 def main() -> int:
@@ -47,7 +34,7 @@ def main() -> int:
     if data is None:
         print("shared data not found (set MORPHMODES_DATA)", file=sys.stderr)
         return 1
-    options = mm.RegistrationOptions().replace(**_parse_overrides(args.set))
+    options = mm.RegistrationOptions().replace(**parse_overrides(args.set))
     animal = args.dataset
     src = data / f"{animal}-poses" / f"{animal}-reference.obj"
     out = Path(args.out)

@@ -79,6 +79,9 @@ class OptimizationHistory:
         Wall time of each stage.
     stage_evaluations : list of int
         Source-SDF evaluations spent in each stage.
+    stage_coefficients : list of (m, 3, 4) float64
+        The coefficients ``T`` at the end of each stage (the global-to-local sequence of
+        the paper's donkey-to-horse figure); kept in memory, not in ``to_dict``.
     evaluations : int
         Number of source-SDF evaluations.
     refreshes : list of int
@@ -94,6 +97,7 @@ class OptimizationHistory:
     stage_ends: list = field(default_factory=list)
     stage_seconds: list = field(default_factory=list)
     stage_evaluations: list = field(default_factory=list)
+    stage_coefficients: list = field(default_factory=list)
     evaluations: int = 0
     refreshes: list = field(default_factory=list)
 
@@ -336,7 +340,8 @@ def _optimize_adaptive(
     current = energy.evaluate(basis.X0)
     initial = current
     history.energy.append(current.energy)
-    T = np.zeros((0, 3, 4))
+    m0 = min(options.initial_modes, m_max)  # 1 in Algorithm 1; m_max for a fixed subspace
+    T = np.zeros((m0 - 1, 3, 4))
     iteration = 0
     status: Status = "converged"
     if not _finite(current):
@@ -359,7 +364,7 @@ def _optimize_adaptive(
                 )
             )
 
-    for stage in range(m_max):
+    for stage in range(m0 - 1, m_max):
         if iteration >= options.max_iterations:
             status = "max_iterations"
             break
@@ -398,6 +403,7 @@ def _optimize_adaptive(
                 end = "stalled"
                 break
         history.stage_ends.append(end)
+        history.stage_coefficients.append(T.copy())
         history.stage_seconds.append(time.perf_counter() - stage_t0)
         history.stage_evaluations.append(energy.evaluations - stage_evals)
         log.info(
