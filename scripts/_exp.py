@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _data import ROOT, data_dir, parse_overrides
+from _data import ROOT, data_dir, parse_overrides, write_csv
 
 import morphmodes_vol as mm
 
@@ -67,11 +67,7 @@ def row_of(result, **extra) -> dict:
 def write_table(rows: list[dict], out: Path, stem: str, columns: list[tuple[str, str, str]]) -> str:
     """Write ``<stem>.csv`` (every key) and ``<stem>.md`` (``columns``: key, header, format);
     returns the markdown."""
-    keys = list(dict.fromkeys(k for r in rows for k in r))
-    with open(out / f"{stem}.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=keys)
-        w.writeheader()
-        w.writerows(rows)
+    write_csv(out / f"{stem}.csv", rows)
     md = ["| " + " | ".join(h for _, h, _ in columns) + " |", "|" + "---|" * len(columns)]
     for r in rows:
         cells = []

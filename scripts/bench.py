@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _data import ROOT, data_dir  # noqa: E402
+from _data import ROOT, data_dir, parse_overrides  # noqa: E402
 
 
 def _peak_rss_mb() -> float:
@@ -144,8 +144,6 @@ HEADER = ("| pair | method | identity error | error | wall s | / NRICP | SDF eva
 
 
 def main() -> int:
-    import ast
-
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--pairs", nargs="*", default=["05", "01"], help="lion poses")
@@ -155,13 +153,7 @@ def main() -> int:
     ap.add_argument("--methods", nargs="*", default=["default", "paper", "nricp"],
                     choices=["default", "paper", "nricp"])
     args = ap.parse_args()
-    overrides = {}
-    for item in args.set:
-        key, _, value = item.partition("=")
-        try:
-            overrides[key] = ast.literal_eval(value)
-        except (ValueError, SyntaxError):
-            overrides[key] = value
+    overrides = parse_overrides(args.set)
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -23,7 +23,6 @@ share one NumPy. Plots need matplotlib (the ``plots`` extra).
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import resource
 import subprocess
@@ -34,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _data import ROOT, data_dir  # noqa: E402
+from _data import ROOT, data_dir, write_csv  # noqa: E402
 from lion_table import _parse_overrides  # noqa: E402
 
 import morphmodes_vol as mm  # noqa: E402
@@ -99,11 +98,7 @@ def _memory(resolutions, backends) -> list[dict]:
 
 
 def _write_csv(path: Path, rows: list[dict]) -> None:
-    keys = list(dict.fromkeys(k for r in rows for k in r))
-    with open(path, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=keys)
-        w.writeheader()
-        w.writerows(rows)
+    write_csv(path, rows)
 
 
 def _fmt(v) -> str:

@@ -11,13 +11,12 @@ Ground-truth error: mean_i ||registered_i - pose_i|| / bbox_diagonal(pose) (shar
 from __future__ import annotations
 
 import argparse
-import csv
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _data import ROOT, data_dir, parse_overrides  # noqa: E402
+from _data import ROOT, data_dir, parse_overrides, write_csv  # noqa: E402
 
 import morphmodes_vol as mm  # noqa: E402
 
@@ -58,10 +57,7 @@ def main() -> int:
         rows.append(row)
         print(f"{row['pair']}: identity {row['identity_error']:.4f} -> {row['error']:.4f} "
               f"({row['ratio']:.2f}x), {row['evaluations']} evals, {wall:.0f}s", flush=True)
-    with open(out / f"{animal}_table.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
+    write_csv(out / f"{animal}_table.csv", rows)
     md = ["| pair | identity error | registered error | ratio | modes | SDF evaluations | status | wall time (s) |",
           "|---|---|---|---|---|---|---|---|"]
     for r in rows:

@@ -10,11 +10,13 @@ estimate. Writes results/memory_check/memory_check.{csv,md}.
 
 from __future__ import annotations
 
-import csv
 import json
 import subprocess
 import sys
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _data import write_csv  # noqa: E402
 
 CONFIGS = [  # (icosphere subdivisions, grid, modes)
     (3, 32, 8),
@@ -63,10 +65,7 @@ def main() -> None:
         row["ratio"] = row["estimate_mb"] / max(row["measured_mb"], 1e-9)
         rows.append(row)
         print(row, flush=True)
-    with open(out / "memory_check.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
+    write_csv(out / "memory_check.csv", rows)
     lines = ["| vertices | grid | modes | quadrature points | measured peak (MB) | estimate (MB) | estimate / measured |",
              "|---|---|---|---|---|---|---|"]
     for r in rows:
