@@ -20,8 +20,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _data import data_dir  # noqa: E402
-from lion_table import _parse_overrides  # noqa: E402
+from _data import data_dir, parse_overrides  # noqa: E402
 
 import morphmodes_vol as mm  # noqa: E402
 from morphmodes_vol.mesh import as_mesh, bbox_diagonal  # noqa: E402
@@ -38,7 +37,7 @@ def main() -> int:
         return 1
     src = data / "lion-poses" / "lion-reference.obj"
     tgt = data / "lion-poses" / f"lion-{args.pose}.obj"
-    base = mm.RegistrationOptions().replace(**_parse_overrides(args.set))
+    base = mm.RegistrationOptions().replace(**parse_overrides(args.set))
     runs = {
         f"dense, target grid {base.resolved_target_grid}": base,
         "vdb, same voxel size": base.replace(target_backend="vdb"),

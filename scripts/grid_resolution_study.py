@@ -33,8 +33,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _data import ROOT, data_dir, write_csv  # noqa: E402
-from lion_table import _parse_overrides  # noqa: E402
+from _data import ROOT, data_dir, parse_overrides, write_csv  # noqa: E402
 
 import morphmodes_vol as mm  # noqa: E402
 from morphmodes_vol.mesh import as_mesh, bbox_diagonal, joint_normalization  # noqa: E402
@@ -51,7 +50,7 @@ def _one(args) -> int:
     src = data / "lion-poses" / "lion-reference.obj"
     tgt = data / "lion-poses" / f"lion-{args.pose}.obj"
     options = mm.RegistrationOptions().replace(
-        target_backend=args.backend, target_grid=args.resolution, **_parse_overrides(args.set))
+        target_backend=args.backend, target_grid=args.resolution, **parse_overrides(args.set))
     t = time.perf_counter()
     reg = mm.Registration(src, tgt, options)
     r = reg.run(ground_truth=tgt)
