@@ -69,8 +69,8 @@ def _options_from_args(args) -> RegistrationOptions:
         changes["preconditioner"] = args.preconditioner
     if args.optimizer is not None:
         changes["optimizer"] = args.optimizer
-        if args.optimizer == "paper" and args.quadrature is None:
-            changes["quadrature"] = "full"  # the paper's Algorithm 1 on the paper's Eq. (3)
+        if args.quadrature is None:  # each optimizer with its quadrature unless asked
+            changes["quadrature"] = "band" if args.optimizer == "lm" else "full"
     if args.quadrature is not None:
         changes["quadrature"] = args.quadrature
     if args.memory_limit is not None:
@@ -93,9 +93,9 @@ def _add_common(p: argparse.ArgumentParser, default_grid: int, default_modes: in
     p.add_argument("--max-iterations", type=int, default=None,
                    help=f"cap on gradient steps over all stages (default {d.max_iterations})")
     p.add_argument("--optimizer", choices=list(OPTIMIZERS), default=None,
-                   help=f"'lm' (Levenberg-Marquardt in the subspace) or 'paper' (Algorithm 1's "
-                        f"gradient descent, with --quadrature full unless given; default "
-                        f"{d.optimizer!r})")
+                   help=f"'paper' (Algorithm 1's gradient descent, with --quadrature full) or "
+                        f"'lm' (the fast path: Levenberg-Marquardt in the subspace, with "
+                        f"--quadrature band), unless --quadrature is given (default {d.optimizer!r})")
     p.add_argument("--quadrature", choices=list(QUADRATURES), default=None,
                    help=f"'full' grid (Eq. 3) or 'band': full grid near the surfaces, coarse "
                         f"blocks elsewhere (default {d.quadrature!r})")

@@ -93,3 +93,17 @@ def test_demo_runs_without_shared_data(tmp_path, capsys):
     assert (out / "source.ply").exists() and (out / "target.ply").exists()
     printed = capsys.readouterr().out
     assert str(out) in printed and "ground-truth error" in printed
+
+
+def test_optimizer_flag_brings_its_quadrature_unless_given():
+    from morphmodes_vol.cli import _options_from_args, build_parser
+
+    def options(*flags):
+        return _options_from_args(build_parser().parse_args(["register", "s.obj", "t.obj", "-o", "out", *flags]))
+
+    default = options()
+    assert (default.optimizer, default.quadrature) == ("paper", "full")
+    fast = options("--optimizer", "lm")
+    assert (fast.optimizer, fast.quadrature) == ("lm", "band")
+    mixed = options("--optimizer", "lm", "--quadrature", "full")
+    assert (mixed.optimizer, mixed.quadrature) == ("lm", "full")

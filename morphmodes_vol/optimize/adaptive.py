@@ -7,13 +7,13 @@ coefficients, started at zero); stop after ``m_max`` modes.
 
 Two steps share this schedule:
 
-- ``optimizer="paper"``: the paper's gradient step with a backtracking (Armijo) line search.
+- ``optimizer="paper"`` (default): the paper's gradient step with a backtracking (Armijo) line search.
   Deviation (docs/method.md): by default each mode's 3x4 block of the gradient is multiplied
   by the inverse of its 4x4 Gram matrix ``[X0 1]^T diag(w_j)^2 [X0 1]``; plain gradient
   descent on the raw coefficients is badly conditioned (translation and linear parts of a
   block differ in scale by ~25x on the lion); ``preconditioner="none"`` gives the paper's
   plain step.
-- ``optimizer="lm"`` (default): a Levenberg-Marquardt step on the Gauss-Newton model with
+- ``optimizer="lm"`` (the fast path): a Levenberg-Marquardt step on the Gauss-Newton model with
   frozen correspondences (:mod:`.gauss_newton`), accepted on the true energy.
 """
 
