@@ -29,7 +29,7 @@ from .eigenbasis import mesh_skinning_weights
 from .repair import sdf_faces
 from .mesh import Normalization, joint_normalization
 from .sdf import DenseTargetSDF, Grid
-from .sdf.source import signed_distance
+from .sdf.source import SignMethod, signed_distance
 
 __all__ = ["SourceEigenbasis", "TargetField", "source_eigenbasis", "target_field"]
 
@@ -150,7 +150,8 @@ class TargetField:
                    Normalization(np.asarray(a["center"]), float(a["scale"])))
 
 
-def target_field(V: np.ndarray, F: np.ndarray, resolution: int, padding: float) -> TargetField:
+def target_field(V: np.ndarray, F: np.ndarray, resolution: int, padding: float,
+                 sign: SignMethod = "winding") -> TargetField:
     """The target-SDF stage of a target, independent of any source.
 
     Parameters
@@ -161,6 +162,8 @@ def target_field(V: np.ndarray, F: np.ndarray, resolution: int, padding: float) 
         Grid nodes along the longest side of the padded box of the target.
     padding : float
         Margin on every side, as a fraction of the target's bounding-box diagonal.
+    sign : {"winding", "raycast"}
+        Inside test of the target (``RegistrationOptions.target_sign``).
 
     Examples
     --------
@@ -176,6 +179,6 @@ def target_field(V: np.ndarray, F: np.ndarray, resolution: int, padding: float) 
     Vn = frame.apply(V)
     grid = Grid.covering(Vn.min(axis=0), Vn.max(axis=0), resolution, padding)
     F = sdf_faces(Vn, F, "target")  # as Registration: no degenerate/duplicate, oriented
-    sdf = DenseTargetSDF.from_mesh(Vn, F, grid)
+    sdf = DenseTargetSDF.from_mesh(Vn, F, grid, sign=sign)
     log.debug("target field: %s nodes", grid.shape)
     return TargetField(sdf, Vn, np.asarray(F, dtype=np.int64), frame)

@@ -114,13 +114,17 @@ def run_pair(spec: PairSpec, events: Any = None) -> dict:
         products["eigenbasis"] = {"cached": hit, "seconds": time.perf_counter() - t}
         t = time.perf_counter()
         _emit(events, spec.name, _product_line("eigenbasis", products["eigenbasis"]))
-        field, hit = cache.get_or_build(
-            "target_sdf",
-            product_key("target_sdf", [digests["target"]],
-                        {"resolution": opts.resolved_target_grid, "padding": opts.padding, "sign": "winding"}),
-            lambda: target_field(Vt, Ft, opts.resolved_target_grid, opts.padding),
-            TargetField.to_arrays, TargetField.from_arrays,
-        )
+        if opts.target_backend == "dense":
+            field, hit = cache.get_or_build(
+                "target_sdf",
+                product_key("target_sdf", [digests["target"]],
+                            {"resolution": opts.resolved_target_grid, "padding": opts.padding,
+                             "sign": opts.target_sign}),
+                lambda: target_field(Vt, Ft, opts.resolved_target_grid, opts.padding, opts.target_sign),
+                TargetField.to_arrays, TargetField.from_arrays,
+            )
+        else:  # only dense fields are cached: Registration builds the vdb level set per pair
+            field, hit = None, False
         products["target_sdf"] = {"cached": hit, "seconds": time.perf_counter() - t}
         _emit(events, spec.name, _product_line("target SDF", products["target_sdf"]))
 
