@@ -399,7 +399,9 @@ def _optimize_adaptive(
             history.step_rms.append(out.step_rms)
             history.modes.append(m)
             report(m, stage_iteration, out.step_rms, eps)
-            if out.step_rms < eps or previous - current.energy <= stepper.stall_decrease * previous:
+            small_decrease = stepper.stall_decrease > 0 and (
+                previous - current.energy <= stepper.stall_decrease * previous)
+            if out.step_rms < eps or small_decrease:
                 end = "stalled"
                 break
         history.stage_ends.append(end)
