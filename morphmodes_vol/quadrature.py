@@ -61,8 +61,9 @@ class GridBlocks:
     radius: float
 
     @classmethod
-    def of(cls, grid: Grid, factor: int) -> "GridBlocks":
-        """Blocks of ``factor`` nodes per axis over ``grid``.
+    def of(cls, grid: Grid, factor: int, points: np.ndarray | None = None) -> "GridBlocks":
+        """Blocks of ``factor`` nodes per axis over ``grid``; ``points`` is ``grid.points()``
+        when the caller already has it.
 
         Examples
         --------
@@ -79,7 +80,7 @@ class GridBlocks:
         bidx = idx // factor
         block = np.ravel_multi_index(bidx.T, tuple(nb))
         counts = np.bincount(block, minlength=int(np.prod(nb)))
-        points = grid.points()
+        points = grid.points() if points is None else points
         centers = np.stack(
             [np.bincount(block, weights=points[:, d], minlength=counts.size) for d in range(3)], 1
         ) / np.maximum(counts, 1)[:, None]
@@ -108,14 +109,17 @@ class BandEnergy:
         Vertex motion allowed before the band is recomputed.
     sign, samples
         As in :class:`SDFEnergy`.
+    points : (N, 3) float, optional
+        ``grid.points()``, when the caller already holds it (not copied).
     """
 
     def __init__(self, F, grid: Grid, g_nodes, sample_target, band: float, factor: int,
-                 margin: float, sign: SignMethod = "raycast", samples: int = 1):
+                 margin: float, sign: SignMethod = "raycast", samples: int = 1,
+                 points: np.ndarray | None = None):
         self.F = np.ascontiguousarray(F, dtype=np.int64)
         self.grid = grid
-        self.blocks = GridBlocks.of(grid, factor)
-        self.points = grid.points()
+        self.points = grid.points() if points is None else points
+        self.blocks = GridBlocks.of(grid, factor, self.points)
         self.g_nodes = np.asarray(g_nodes, dtype=np.float64)
         self.g_centers = np.asarray(sample_target(self.blocks.centers), dtype=np.float64)
         self.band, self.margin = float(band), float(margin)

@@ -237,7 +237,7 @@ class Registration:
             return BandEnergy(
                 self.source_sdf_faces, self.quadrature, self.g, self.sample_target,
                 band=o.band_cells * h, factor=o.block_factor, margin=o.band_margin_cells * h,
-                sign=o.source_sign, samples=o.occupancy_samples,
+                sign=o.source_sign, samples=o.occupancy_samples, points=self.Q,
             )
         return self.full_energy()
 
