@@ -261,3 +261,38 @@ def test_cli_bad_landmark_file_is_one_line_exit_2(twisted_pair, tmp_path):
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and "line 2" in lines[0] and str(lm) in lines[0] and "out of range" in lines[0]
     assert not (tmp_path / "o").exists()
+
+
+# --- pipelines -----------------------------------------------------------------------------
+
+def test_pipeline_manifest_and_list_take_landmarks_per_pair(twisted_pair, tmp_path):
+    from morphmodes_vol.pipeline import load_pipeline, run_pipeline
+
+    src, tgt, V, truth = twisted_pair
+    idx = [8, 42, 78, 117]
+    (tmp_path / "lm.csv").write_text("".join(f"{i},{x:.17g},{y:.17g},{z:.17g}\n" for i, (x, y, z)
+                                             in zip(idx, truth[idx])))
+    (tmp_path / "bad.csv").write_text("0, 0, 0\n")
+    (tmp_path / "pairs.csv").write_text("source,target,name,landmarks\nsrc.ply,tgt.ply,plain,\n"
+                                        "src.ply,tgt.ply,guided,lm.csv\nsrc.ply,tgt.ply,bad,bad.csv\n")
+    options = '[options]\ngrid = 16\nmodes = 2\noptimizer = "lm"\nquadrature = "band"\n'
+    path = tmp_path / "p.toml"
+    path.write_text('[pairs]\nmanifest = "pairs.csv"\nground_truth = "target"\n' + options)
+    p = load_pipeline(path)
+    assert [s.landmarks for s in p.pairs] == [None, tmp_path / "lm.csv", tmp_path / "bad.csv"]
+    run = run_pipeline(p, workers=1)
+    rows = {r["pair"]: r for r in run.rows}
+    assert rows["bad"]["state"] == "failed" and "bad.csv, line 1: expected 4 columns" in rows["bad"]["error"]
+    plain, guided = rows["plain"], rows["guided"]
+    assert plain["ground_truth_error"] > 0.7 * plain["identity_error"]
+    assert guided["ground_truth_error"] < 0.02 * guided["identity_error"]
+    report = json.loads((p.pairs[1].outdir / "report.json").read_text())
+    assert report["inputs"]["landmarks"] == str(tmp_path / "lm.csv") and report["metrics"]["landmarks"] == 4
+    # an edited landmark file is never served a stale result; the pair without one is skipped
+    (tmp_path / "lm.csv").write_text((tmp_path / "lm.csv").read_text().replace("117,", "116,"))
+    again = {r["pair"]: r["state"] for r in run_pipeline(load_pipeline(path), workers=1).rows}
+    assert again == {"plain": "skipped", "guided": "ok", "bad": "failed"}
+    # the list form takes the same key
+    path.write_text('[pairs]\nlist = [{source = "src.ply", target = "tgt.ply", landmarks = "lm.csv"}]\n'
+                    + options)
+    assert load_pipeline(path).pairs[0].landmarks == tmp_path / "lm.csv"
