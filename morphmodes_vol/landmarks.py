@@ -72,8 +72,8 @@ def _fail(label: str, line: int | None, what: str):
 def load_landmarks(path: str | os.PathLike, n_vertices: int | None = None) -> Landmarks:
     """Read a landmark CSV: ``source_vertex_index, x, y, z`` per line.
 
-    A first line whose first field is not a number is a header; blank lines and lines
-    starting with ``#`` are skipped.
+    A first line without any number is a header; blank lines and lines starting with ``#``
+    are skipped.
 
     Parameters
     ----------
@@ -102,7 +102,7 @@ def load_landmarks(path: str | os.PathLike, n_vertices: int | None = None) -> La
     """
     label = str(path)
     try:
-        with open(path, newline="") as fh:
+        with open(path, newline="", encoding="utf-8-sig") as fh:  # a BOM is no header
             rows = list(enumerate(csv.reader(fh), start=1))
     except OSError as exc:
         _fail(label, None, f"cannot read the landmark file ({exc.strerror})")
@@ -114,8 +114,8 @@ def load_landmarks(path: str | os.PathLike, n_vertices: int | None = None) -> La
         fields = [f.strip() for f in row]
         if not any(fields) or fields[0].startswith("#"):
             continue
-        if header_allowed and not _is_number(fields[0]):
-            header_allowed = False  # a header: once, before any landmark
+        if header_allowed and not any(_is_number(f) for f in fields):
+            header_allowed = False  # a header: no number in it, once, before any landmark
             continue
         header_allowed = False
         if len(fields) != 4:

@@ -72,8 +72,9 @@ class RegistrationResult:
         ``correspondence``.
     metrics : dict of str to float
         Energies, RMS SDF residuals, surface distance and degeneracy
-        (:func:`morphmodes_vol.metrics.shape_metrics`), and ground-truth errors when a ground
-        truth was given.
+        (:func:`morphmodes_vol.metrics.shape_metrics`), ground-truth errors when a ground
+        truth was given, landmark distances when landmarks were (``initial_landmark_rms``,
+        ``landmark_rms`` in target units, ``landmark_rms_fraction`` of its diagonal).
     correspondence_faces : (n,) int64 or None
         For every registered vertex, the closest target face (``None`` when the target was
         given as an SDF grid: it has no faces).

@@ -160,6 +160,8 @@ def test_file_with_header_comments_and_blank_lines(tmp_path):
     p.write_text("# picked by hand\nsource_vertex_index,x,y,z\n\n4, 1.5, -2, 3e-1\n 0 ,0,0,0\n")
     lm = load_landmarks(p, n_vertices=5)
     assert lm.indices.tolist() == [4, 0]
+    p.write_text("\ufeff3,1,2,3\n", encoding="utf-8")  # a byte-order mark is not a header
+    assert load_landmarks(p, n_vertices=5).indices.tolist() == [3]
     np.testing.assert_array_equal(lm.points, [[1.5, -2, 0.3], [0, 0, 0]])
     assert lm.indices.dtype == np.int64
 
@@ -170,6 +172,7 @@ def test_file_with_header_comments_and_blank_lines(tmp_path):
     ("1, 0, 0\n", "line 1: expected 4 columns"),
     ("0,0,0,0\n1, 0, 0, 0, 5\n", "line 2: expected 4 columns"),
     ("1.5, 0, 0, 0\n", "line 1: source vertex index '1.5' is not an integer"),
+    ("x3, 0, 0, 0\n1, 0, 0, 0\n", "line 1: source vertex index 'x3' is not a number"),  # no header
     ("1, a, 0, 0\n", "line 1: coordinates"),
     ("i,x,y,z\n0,0,0,0\nfoo,1,1,1\n", "line 3: source vertex index 'foo' is not a number"),
     ("0, 0, 0, 0\n9, 0, 0, 0\n", "line 2: source vertex index 9 is out of range [0, 5)"),
