@@ -332,11 +332,11 @@ class Registration:
             truth = ground_truth if isinstance(ground_truth, np.ndarray) else as_mesh(ground_truth, "ground truth")[0]
             metrics["identity_error"] = ground_truth_error(self.source_vertices, truth)
             metrics["ground_truth_error"] = ground_truth_error(vertices, truth)
-        # surface distance and degeneracy (morphmodes_vol.metrics); a target given as an SDF
-        # grid has no surface mesh to measure against
-        if self.landmarks is not None:
+        if self.landmarks is not None:  # diag is normalized for a mesh target, original for an SDF
             metrics.update(self._landmark_metrics(vertices, diag / self.normalization.scale
                                                   if self.Y is not None else diag))
+        # surface distance and degeneracy (morphmodes_vol.metrics); a target given as an SDF
+        # grid has no surface mesh to measure against
         if self.Y is not None:
             metrics.update(shape_metrics(self.X0, out.vertices, self.source_faces, self.Y, self.target_faces))
 
@@ -358,7 +358,6 @@ class Registration:
             target_vertices=self.target_vertices,
             target_faces=self.target_faces,
         )
-
 
     def _landmark_metrics(self, vertices: np.ndarray, target_diagonal: float) -> dict:
         """RMS landmark distance of the rest pose and of the registered ``vertices (n, 3)``,
