@@ -13,6 +13,7 @@ from .errors import MeshLoadError, MeshValidationError, MorphModesError, OptionE
 from .mesh import as_mesh, load_mesh, validate_mesh
 from .options import RegistrationOptions
 from .register import Registration, RegistrationResult, ground_truth_error, register
+from .landmarks import LandmarkError, Landmarks, load_landmarks
 
 __version__ = "0.1.0"
 
@@ -30,5 +31,8 @@ __all__ = [
     "MeshValidationError",
     "MeshLoadError",
     "OptionError",
+    "Landmarks",
+    "load_landmarks",
+    "LandmarkError",
     "__version__",
 ]

@@ -79,6 +79,8 @@ def _options_from_args(args) -> RegistrationOptions:
         changes["target_backend"] = args.target_backend
     if args.target_sign is not None:
         changes["target_sign"] = args.target_sign
+    if getattr(args, "landmark_weight", None) is not None:
+        changes["landmark_weight"] = args.landmark_weight
     return RegistrationOptions().replace(**changes)
 
 
@@ -130,16 +132,19 @@ def _summary(result, paths) -> str:
     if "ground_truth_error" in m:
         lines.append(f"ground-truth error: {m['identity_error']:.4g} (identity) -> "
                      f"{m['ground_truth_error']:.4g} (registered), fraction of the target's diagonal")
+    if "landmark_rms" in m:
+        lines.append(f"landmark RMS distance: {m['initial_landmark_rms']:.4g} -> {m['landmark_rms']:.4g} "
+                     f"(target units; {m['landmark_rms_fraction']:.4g} of the target's diagonal)")
     lines.append(f"results in {paths['report'].parent}/: " + ", ".join(p.name for p in paths.values()))
     return "\n".join(lines)
 
 
-def _run(source, target, args, inputs, ground_truth=None, mesh_format="ply") -> int:
+def _run(source, target, args, inputs, ground_truth=None, mesh_format="ply", landmarks=None) -> int:
     from .register import Registration
 
     options = _options_from_args(args)
     progress = None if args.quiet else ProgressPrinter()
-    reg = Registration(source, target, options)
+    reg = Registration(source, target, options, landmarks=landmarks)
     try:
         result = reg.run(progress=progress, ground_truth=ground_truth)
     finally:
@@ -158,7 +163,10 @@ def cmd_register(args) -> int:
     inputs = {"source": str(args.source), "target": str(args.target), "cli": True}
     if args.ground_truth:
         inputs["ground_truth"] = str(args.ground_truth)
-    return _run(args.source, args.target, args, inputs, ground_truth=args.ground_truth, mesh_format=fmt)
+    if args.landmarks:
+        inputs["landmarks"] = str(args.landmarks)
+    return _run(args.source, args.target, args, inputs, ground_truth=args.ground_truth, mesh_format=fmt,
+                landmarks=args.landmarks)
 
 
 def cmd_demo(args) -> int:
@@ -337,6 +345,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="mesh whose vertex i is where source vertex i should land (adds error metrics)")
     p.add_argument("--format", choices=MESH_FORMATS, default=None,
                    help="format of registered.* (default: the source's, else ply)")
+    p.add_argument("--landmarks", default=None, metavar="CSV",
+                   help="landmarks: lines 'source_vertex_index, x, y, z' (target point in the "
+                        "target's frame), optional header")
+    p.add_argument("--landmark-weight", type=float, default=None, metavar="W",
+                   help=f"weight of the landmark term, relative to the SDF term's mean square over "
+                        f"the box (default {d.landmark_weight:g})")
     _add_common(p, d.grid, d.modes)
     p.set_defaults(func=cmd_register)
 

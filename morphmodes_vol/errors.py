@@ -14,6 +14,7 @@ __all__ = [
     "PipelineError",
     "OpenVDBUnavailableError",
     "TargetSDFLoadError",
+    "LandmarkError",
 ]
 
 
@@ -44,3 +45,8 @@ class OpenVDBUnavailableError(MorphModesError):
 
 class TargetSDFLoadError(MorphModesError):
     """A target-SDF file (``.vdb`` or ``.npz``) cannot be read or holds no usable grid."""
+
+
+class LandmarkError(MorphModesError):
+    """Landmarks cannot be used: unreadable or empty file, wrong column count, non-integer,
+    out-of-range or duplicate source vertex index, non-finite target point."""

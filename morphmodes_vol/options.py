@@ -128,6 +128,10 @@ class RegistrationOptions:
         behind holes; ``"raycast"``: Open3D ray parity, wrong in a shadow behind each hole.
     vdb_half_width : float
         Half width of the ``"vdb"`` band in voxels (OpenVDB's default, 3).
+    landmark_weight : float
+        Weight of the landmark term, when landmarks are given (:mod:`morphmodes_vol.landmarks`):
+        dimensionless, ``1`` makes the mean squared landmark distance count as much as the
+        mean squared SDF residual over the quadrature box; ``0`` ignores the landmarks.
     """
 
     grid: int = 64
@@ -160,6 +164,7 @@ class RegistrationOptions:
     target_backend: TargetBackend = "dense"
     target_sign: SignMethod = "winding"
     vdb_half_width: float = 3.0
+    landmark_weight: float = 1.0
 
     def __post_init__(self) -> None:
         def need(cond: bool, name: str, what: str) -> None:
@@ -170,7 +175,7 @@ class RegistrationOptions:
 
         for name in ("padding", "stall_start", "stall_end", "max_step", "armijo", "backtrack",
                      "vdb_half_width", "lm_damping", "lm_max_step", "lm_stall_decrease",
-                     "band_cells", "band_margin_cells"):
+                     "band_cells", "band_margin_cells", "landmark_weight"):
             need(_is_real(getattr(self, name)), name, "a finite number")
         need(self.memory_limit_gb is None or (_is_real(self.memory_limit_gb) and self.memory_limit_gb > 0),
              "memory_limit_gb", "None or a positive number of GB")
@@ -215,6 +220,7 @@ class RegistrationOptions:
         need(self.target_backend in TARGET_BACKENDS, "target_backend", f"one of {TARGET_BACKENDS}")
         need(self.target_sign in SIGN_METHODS, "target_sign", f"one of {SIGN_METHODS}")
         need(1.0 <= self.vdb_half_width <= 64.0, "vdb_half_width", "a float in [1, 64]")
+        need(self.landmark_weight >= 0, "landmark_weight", "a non-negative float")
 
     @property
     def resolved_target_grid(self) -> int:

@@ -18,6 +18,7 @@ import numpy as np
 from .eigenbasis import LBSBasis, mesh_skinning_weights, to_paper_z
 from .energy import SDFEnergy
 from .errors import OptionError
+from .landmarks import LandmarkEnergy, Landmarks, as_landmarks, landmark_rms
 from .mesh import MeshLike, Normalization, as_mesh, bbox_diagonal, joint_normalization
 from .limits import check_memory, estimate_memory
 from .metrics import ground_truth_error, shape_metrics
@@ -71,8 +72,9 @@ class RegistrationResult:
         ``correspondence``.
     metrics : dict of str to float
         Energies, RMS SDF residuals, surface distance and degeneracy
-        (:func:`morphmodes_vol.metrics.shape_metrics`), and ground-truth errors when a ground
-        truth was given.
+        (:func:`morphmodes_vol.metrics.shape_metrics`), ground-truth errors when a ground
+        truth was given, landmark distances when landmarks were (``initial_landmark_rms``,
+        ``landmark_rms`` in target units, ``landmark_rms_fraction`` of its diagonal).
     correspondence_faces : (n,) int64 or None
         For every registered vertex, the closest target face (``None`` when the target was
         given as an SDF grid: it has no faces).
@@ -131,6 +133,9 @@ class Registration:
     target_sdf : TargetField, optional
         A precomputed target SDF of this target (:func:`morphmodes_vol.stages.target_field`),
         sampled at the quadrature points instead of building a dense grid over the pair's box.
+    landmarks : CSV path, Landmarks or (indices (L,) int, points (L, 3) float), optional
+        Source vertices pinned to target points (the target's original frame), added to
+        Eq. (3) with ``options.landmark_weight`` (:mod:`morphmodes_vol.landmarks`).
 
     Examples
     --------
@@ -143,7 +148,8 @@ class Registration:
     """
 
     def __init__(self, source: MeshLike, target: MeshLike, options: RegistrationOptions | None = None,
-                 *, eigenbasis: SourceEigenbasis | None = None, target_sdf: TargetField | None = None):
+                 *, eigenbasis: SourceEigenbasis | None = None, target_sdf: TargetField | None = None,
+                 landmarks: Landmarks | str | os.PathLike | tuple | None = None):
         self.options = options if options is not None else RegistrationOptions()
         self.timings: dict[str, float] = {}
 
@@ -165,6 +171,7 @@ class Registration:
                 f"{self.source_vertices.shape[0]} vertices"
             )
         self.normalization = joint_normalization(self.source_vertices, target_box)
+        self.landmarks = None if landmarks is None else as_landmarks(landmarks, len(self.source_vertices))
         self.X0 = self.normalization.apply(self.source_vertices)
         self.Y = None if grid_target is not None else self.normalization.apply(self.target_vertices)
         Yb = self.normalization.apply(target_box)
@@ -234,12 +241,18 @@ class Registration:
         o = self.options
         if o.quadrature == "band":
             h = self.quadrature.spacing
-            return BandEnergy(
+            sdf = BandEnergy(
                 self.source_sdf_faces, self.quadrature, self.g, self.sample_target,
                 band=o.band_cells * h, factor=o.block_factor, margin=o.band_margin_cells * h,
                 sign=o.source_sign, samples=o.occupancy_samples, points=self.Q,
             )
-        return self.full_energy()
+        else:
+            sdf = self.full_energy()
+        if self.landmarks is None or o.landmark_weight == 0:
+            return sdf
+        # E_sdf + E_lm (morphmodes_vol.landmarks), the weight relative to the box's volume
+        return LandmarkEnergy(sdf, self.landmarks.indices, self.normalization.apply(self.landmarks.points),
+                              o.landmark_weight, self.quadrature.cell_volume * self.Q.shape[0])
 
     def sample_target(self, points: np.ndarray) -> np.ndarray:
         """Target SDF at ``points (k, 3)`` of the pair's normalized frame, ``(k,)``."""
@@ -319,6 +332,9 @@ class Registration:
             truth = ground_truth if isinstance(ground_truth, np.ndarray) else as_mesh(ground_truth, "ground truth")[0]
             metrics["identity_error"] = ground_truth_error(self.source_vertices, truth)
             metrics["ground_truth_error"] = ground_truth_error(vertices, truth)
+        if self.landmarks is not None:  # diag is normalized for a mesh target, original for an SDF
+            metrics.update(self._landmark_metrics(vertices, diag / self.normalization.scale
+                                                  if self.Y is not None else diag))
         # surface distance and degeneracy (morphmodes_vol.metrics); a target given as an SDF
         # grid has no surface mesh to measure against
         if self.Y is not None:
@@ -343,6 +359,14 @@ class Registration:
             target_faces=self.target_faces,
         )
 
+    def _landmark_metrics(self, vertices: np.ndarray, target_diagonal: float) -> dict:
+        """RMS landmark distance of the rest pose and of the registered ``vertices (n, 3)``,
+        in the target's units and as a fraction of its bounding-box diagonal."""
+        before = landmark_rms(self.source_vertices, self.landmarks)
+        after = landmark_rms(vertices, self.landmarks)
+        return {"landmarks": len(self.landmarks), "initial_landmark_rms": before,
+                "landmark_rms": after, "landmark_rms_fraction": after / target_diagonal}
+
 
 def _as_target_sdf(target, options: RegistrationOptions) -> TargetSDF | None:
     """The target as a loaded SDF, or ``None`` when it is a mesh."""
@@ -362,6 +386,7 @@ def register(
     *,
     progress: Callable[[ProgressEvent], None] | None = None,
     ground_truth: MeshLike | np.ndarray | None = None,
+    landmarks: Landmarks | str | os.PathLike | tuple | None = None,
     **option_overrides,
 ) -> RegistrationResult:
     """Register ``source`` onto ``target`` by SDF matching in an adaptive skinning-eigenmode
@@ -379,6 +404,9 @@ def register(
         Receives a :class:`~morphmodes_vol.optimize.ProgressEvent` after every step.
     ground_truth : optional
         Target positions of the source vertices (same order), for error metrics.
+    landmarks : optional
+        Source vertices pinned to target points (CSV path or ``(indices, points)``), see
+        :class:`Registration`.
 
     Returns
     -------
@@ -395,4 +423,5 @@ def register(
     options = options if options is not None else RegistrationOptions()
     if option_overrides:
         options = options.replace(**option_overrides)
-    return Registration(source, target, options).run(progress=progress, ground_truth=ground_truth)
+    return Registration(source, target, options, landmarks=landmarks).run(progress=progress,
+                                                                         ground_truth=ground_truth)

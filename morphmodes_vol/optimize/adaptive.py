@@ -31,7 +31,7 @@ from ..eigenbasis.lbs import LBSBasis
 from ..energy import EnergyEvaluation, SDFEnergy
 from ..errors import OptionError
 from ..options import OPTIMIZERS, PRECONDITIONERS, RegistrationOptions
-from .gauss_newton import lm_solve, subspace_metric, subspace_normal_equations
+from .gauss_newton import NormalEquations, lm_solve, subspace_metric, subspace_normal_equations
 from .linesearch import armijo_backtracking
 
 __all__ = ["optimize_adaptive", "OptimizationHistory", "ProgressEvent", "Status"]
@@ -249,6 +249,9 @@ class _LevenbergMarquardtStepper:
         m = T.shape[0]
         n = basis.X0.shape[0]
         model = subspace_normal_equations(current, basis, m, self.energy.F, self.energy.weights)
+        extra = getattr(self.energy, "normal_matrix", None)  # e.g. landmarks' block
+        if extra is not None:
+            model = NormalEquations(A=model.A + extra(basis, m), g=model.g)
         for _ in range(options.max_backtracks):
             d = lm_solve(model, self.metric, self.damping)
             rms = float(np.sqrt(d @ self.metric @ d / n))

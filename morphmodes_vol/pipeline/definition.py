@@ -45,6 +45,8 @@ class PairSpec:
     mesh_format : str
         Format of ``registered.*``; ``"source"`` keeps the source's.
     cache_dir : Path
+    landmarks : Path or None
+        Landmark CSV of the pair (:mod:`morphmodes_vol.landmarks`).
     """
 
     name: str
@@ -56,6 +58,7 @@ class PairSpec:
     outdir: Path = Path(".")
     mesh_format: str = "source"
     cache_dir: Path = Path(".")
+    landmarks: Path | None = None
 
     @property
     def resolved_format(self) -> str:
@@ -207,8 +210,10 @@ def _glob(pattern: str, data: Path, ck: _Checker, key: str) -> list[Path]:
     return found
 
 
-def _raw_pairs(table: dict, data: Path, ck: _Checker) -> list[tuple[Path, Path, Path | None | str, str | None]]:
-    """(source, target, ground truth, name) before variants; ground truth may be 'target'."""
+def _raw_pairs(table: dict, data: Path, ck: _Checker) -> list[tuple[Path, Path, Path | None | str, str | None,
+                                                                     Path | None]]:
+    """(source, target, ground truth, name, landmarks) before variants; ground truth may be
+    'target'; landmarks come from list entries and manifest rows only."""
     modes = [k for k in ("targets", "list", "all", "manifest") if k in table]
     if len(modes) != 1:
         ck.fail("pairs", "needs exactly one of 'targets' (with 'source'), 'list', 'all', 'manifest'; "
@@ -230,22 +235,23 @@ def _raw_pairs(table: dict, data: Path, ck: _Checker) -> list[tuple[Path, Path, 
     if mode == "targets":
         source = resolve(table["source"], "pairs.source", data)
         targets = _glob(ck.string(table, "targets", "pairs."), data, ck, "pairs.targets")
-        return [(source, t, default_gt, None) for t in targets if t.resolve() != source.resolve()]
+        return [(source, t, default_gt, None, None) for t in targets if t.resolve() != source.resolve()]
     if mode == "all":
         files = _glob(ck.string(table, "all", "pairs."), data, ck, "pairs.all")
         if len(files) < 2:
             ck.fail("pairs.all", "matches fewer than two files")
-        return [(a, b, default_gt, None) for a, b in itertools.permutations(files, 2)]
+        return [(a, b, default_gt, None, None) for a, b in itertools.permutations(files, 2)]
     if mode == "list":
         items = table["list"]
         if not isinstance(items, list) or not items:
-            ck.fail("pairs.list", "must be a non-empty list of {source, target[, ground_truth, name]} tables")
+            ck.fail("pairs.list", "must be a non-empty list of {source, target[, ground_truth, name, "
+                                  "landmarks]} tables")
         rows = []
         for i, item in enumerate(items):
             where = f"pairs.list[{i}]"
             if isinstance(item, list) and len(item) == 2:
                 item = {"source": item[0], "target": item[1]}
-            ck.keys(item, {"source", "target", "ground_truth", "name"}, where)
+            ck.keys(item, {"source", "target", "ground_truth", "name", "landmarks"}, where)
             for k in ("source", "target"):
                 if k not in item:
                     ck.fail(f"{where}.{k}", "is missing")
@@ -257,7 +263,7 @@ def _raw_pairs(table: dict, data: Path, ck: _Checker) -> list[tuple[Path, Path, 
             reader = csv.DictReader(fh)
             if not reader.fieldnames or not {"source", "target"} <= set(reader.fieldnames):
                 ck.fail("pairs.manifest", f"{manifest} needs a header with columns 'source' and 'target'")
-            extra = sorted(set(reader.fieldnames) - {"source", "target", "ground_truth", "name"})
+            extra = sorted(set(reader.fieldnames) - {"source", "target", "ground_truth", "name", "landmarks"})
             if extra:
                 ck.fail("pairs.manifest", f"{manifest}: unknown column {extra[0]!r}")
             rows = [_row({k: v for k, v in r.items() if v}, manifest.parent, default_gt, resolve, ck,
@@ -284,7 +290,10 @@ def _row(item: dict, base: Path, default_gt, resolve, ck: _Checker, where: str):
     name = item.get("name")
     if name is not None and (not isinstance(name, str) or not re.fullmatch(r"[\w.=+-]+", name)):
         ck.fail(f"{where}.name", f"must be letters, digits and . _ = + - only, got {name!r}")
-    return source, target, gt, name
+    landmarks = item.get("landmarks")
+    if landmarks is not None:
+        landmarks = resolve(landmarks, f"{where}.landmarks", base)
+    return source, target, gt, name, landmarks
 
 
 def _norm(path: Path) -> Path:
@@ -332,7 +341,7 @@ def parse_pipeline(doc: dict, path: str | os.PathLike, output: str | os.PathLike
     table = ck.keys(doc["pairs"], _PAIR_KEYS, "pairs")
     specs: list[PairSpec] = []
     seen: dict[str, int] = {}
-    for source, target, gt, pair_name in _raw_pairs(table, data, ck):
+    for source, target, gt, pair_name, landmarks in _raw_pairs(table, data, ck):
         stem = pair_name or f"{source.stem}__{target.stem}"
         for variant, options in variants:
             label = stem + (f"__{_variant_label(variant)}" if variant else "")
@@ -343,6 +352,6 @@ def parse_pipeline(doc: dict, path: str | os.PathLike, output: str | os.PathLike
                 name=unique, source=source, target=target,
                 ground_truth=target if gt == "target" else gt,
                 options=options, variant=variant, outdir=out / "pairs" / unique,
-                mesh_format=fmt, cache_dir=cache_dir,
+                mesh_format=fmt, cache_dir=cache_dir, landmarks=landmarks,
             ))
     return Pipeline(name=name, path=path, output=out, cache_dir=cache_dir, pairs=specs, plot_metric=plot)

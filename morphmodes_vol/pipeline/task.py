@@ -3,8 +3,8 @@ products, optimize, export; or recognize that the pair's outputs are already com
 
 A pair's folder is complete when its ``report.json`` (written last, atomically) records the
 pair key of the current definition and the other files it lists exist. The pair key hashes
-the loaded meshes (source, target, ground truth), the options, the output format and the
-library version. A failure is written to ``failed.json`` and returned, never raised.
+the loaded meshes (source, target, ground truth) and landmarks, the options, the output
+format and the library version. A failure is written to ``failed.json`` and returned, never raised.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from ..export import atomic_write_bytes, write_outputs
+from ..landmarks import load_landmarks
 from ..mesh import load_mesh
 from ..stages import SourceEigenbasis, TargetField, source_eigenbasis, target_field
 from .cache import ProductCache, mesh_digest, product_key
@@ -36,7 +37,10 @@ def pair_key(spec: PairSpec, digests: dict[str, str | None]) -> str:
     """Key of a pair's outputs: mesh contents, options, output format, library version."""
     from .. import __version__
 
-    return product_key("pair", [digests["source"], digests["target"], digests.get("ground_truth") or ""],
+    meshes = [digests["source"], digests["target"], digests.get("ground_truth") or ""]
+    if digests.get("landmarks"):  # only then, so keys of pairs without landmarks stay as they were
+        meshes.append(digests["landmarks"])
+    return product_key("pair", meshes,
                        {"options": spec.options.to_dict(), "format": spec.resolved_format,
                         "library": __version__})
 
@@ -93,6 +97,10 @@ def run_pair(spec: PairSpec, events: Any = None) -> dict:
         if spec.ground_truth is not None:
             truth = Vt if spec.ground_truth == spec.target else load_mesh(spec.ground_truth)[0]
             digests["ground_truth"] = mesh_digest(truth, np.zeros((0, 3)))
+        landmarks = None
+        if spec.landmarks is not None:
+            landmarks = load_landmarks(spec.landmarks, len(Vs))
+            digests["landmarks"] = mesh_digest(landmarks.points, landmarks.indices[:, None])
         key = pair_key(spec, digests)
         if is_complete(spec, key):
             _emit(events, spec.name, "skipped (outputs complete)")
@@ -128,7 +136,7 @@ def run_pair(spec: PairSpec, events: Any = None) -> dict:
         products["target_sdf"] = {"cached": hit, "seconds": time.perf_counter() - t}
         _emit(events, spec.name, _product_line("target SDF", products["target_sdf"]))
 
-        reg = Registration((Vs, Fs), (Vt, Ft), opts, eigenbasis=basis, target_sdf=field)
+        reg = Registration((Vs, Fs), (Vt, Ft), opts, eigenbasis=basis, target_sdf=field, landmarks=landmarks)
         modes = [0]
 
         def progress(e) -> None:
@@ -144,6 +152,7 @@ def run_pair(spec: PairSpec, events: Any = None) -> dict:
         inputs = {
             "source": str(spec.source), "target": str(spec.target),
             "ground_truth": None if spec.ground_truth is None else str(spec.ground_truth),
+            "landmarks": None if spec.landmarks is None else str(spec.landmarks),
             "pipeline": {"pair": spec.name, "key": key, "variant": spec.variant,
                          "mesh_sha256": digests, "products": products, "seconds": seconds},
         }
