@@ -18,7 +18,7 @@ from .sdf.source import SignMethod
 from .sdf.target import TARGET_BACKENDS, TargetBackend
 
 __all__ = ["RegistrationOptions", "Preconditioner", "PRECONDITIONERS", "SIGN_METHODS", "Optimizer",
-           "OPTIMIZERS", "Quadrature", "QUADRATURES"]
+           "OPTIMIZERS", "Quadrature", "QUADRATURES", "Initialization", "INITIALIZATIONS"]
 
 Preconditioner = Literal["block", "none"]
 PRECONDITIONERS = typing.get_args(Preconditioner)
@@ -27,6 +27,8 @@ Optimizer = Literal["lm", "paper"]
 OPTIMIZERS = typing.get_args(Optimizer)
 Quadrature = Literal["full", "band"]
 QUADRATURES = typing.get_args(Quadrature)
+Initialization = Literal["none", "rigid", "similarity"]
+INITIALIZATIONS = typing.get_args(Initialization)
 
 
 @dataclass(frozen=True)
@@ -132,6 +134,19 @@ class RegistrationOptions:
         Weight of the landmark term, when landmarks are given (:mod:`morphmodes_vol.landmarks`):
         dimensionless, ``1`` makes the mean squared landmark distance count as much as the
         mean squared SDF residual over the quadrature box; ``0`` ignores the landmarks.
+    initialization : {"none", "rigid", "similarity"}
+        Global alignment before Algorithm 1 (:mod:`morphmodes_vol.initialize`): a rigid
+        motion or similarity minimizing Eq. (3) on a coarse grid, refined from the source's
+        own orientation (centroids matched) and from the best of 28 candidate orientations.
+        ``"none"``: start at the rest pose, as the paper does.
+    init_grid : int
+        Nodes along the longest side of the coarse grid of the initialization.
+    init_candidates : int
+        Starts refined: the unrotated one and the ``init_candidates - 1`` best screened
+        rotations (``1``: no multi-start, a local alignment only).
+    init_switch : float
+        A rotated start wins only when its energy is below ``init_switch`` times the
+        unrotated start's (an orientation prior; docs/method.md has the measurements).
     """
 
     grid: int = 64
@@ -165,6 +180,17 @@ class RegistrationOptions:
     target_sign: SignMethod = "winding"
     vdb_half_width: float = 3.0
     landmark_weight: float = 1.0
+    initialization: Initialization = "none"
+    init_grid: int = 32
+    init_candidates: int = 6
+    init_switch: float = 0.6
+
+    @classmethod
+    def paper_faithful(cls) -> "RegistrationOptions":
+        """The paper's settings as this library implements them (issue 2's defaults):
+        Algorithm 1's gradient descent on the full grid, from the rest pose (no
+        initialization stage), 20 modes."""
+        return cls(optimizer="paper", quadrature="full", initialization="none", modes=20)
 
     def __post_init__(self) -> None:
         def need(cond: bool, name: str, what: str) -> None:
@@ -221,6 +247,11 @@ class RegistrationOptions:
         need(self.target_sign in SIGN_METHODS, "target_sign", f"one of {SIGN_METHODS}")
         need(1.0 <= self.vdb_half_width <= 64.0, "vdb_half_width", "a float in [1, 64]")
         need(self.landmark_weight >= 0, "landmark_weight", "a non-negative float")
+        need(self.initialization in INITIALIZATIONS, "initialization", f"one of {INITIALIZATIONS}")
+        need(_is_int(self.init_grid) and 8 <= self.init_grid <= 256, "init_grid", "an integer in [8, 256]")
+        need(_is_int(self.init_candidates) and 1 <= self.init_candidates <= 29, "init_candidates",
+             "an integer in [1, 29]")
+        need(_is_real(self.init_switch) and 0 <= self.init_switch <= 1, "init_switch", "a float in [0, 1]")
 
     @property
     def resolved_target_grid(self) -> int:

@@ -17,6 +17,7 @@ import numpy as np
 
 from .eigenbasis import LBSBasis, mesh_skinning_weights, to_paper_z
 from .energy import SDFEnergy
+from .initialize import InitialAlignment, align
 from .errors import OptionError
 from .landmarks import LandmarkEnergy, Landmarks, as_landmarks, landmark_rms
 from .mesh import MeshLike, Normalization, as_mesh, bbox_diagonal, joint_normalization
@@ -264,6 +265,18 @@ class Registration:
             return n.scale * self.target_sdf.sample(n.undo(points))
         return self.target_sdf.sample(points)
 
+    def initial_alignment(self) -> InitialAlignment:
+        """The initialization stage (:func:`morphmodes_vol.initialize.align`) on a coarse grid
+        of ``options.init_grid`` nodes over the pair's box."""
+        o = self.options
+        lo, hi = self.quadrature.origin, self.quadrature.origin + self.quadrature.spacing * (
+            np.asarray(self.quadrature.shape) - 1)
+        coarse = Grid.covering(lo, hi, o.init_grid)
+        Q = coarse.points()
+        return align(self.X0, self.source_sdf_faces, Q, self.sample_target(Q), coarse.cell_volume,
+                     kind=o.initialization, keep=o.init_candidates, switch=o.init_switch,
+                     sign=o.source_sign)
+
     def full_energy(self) -> SDFEnergy:
         """Eq. (3) on every node of the quadrature grid (the paper's quadrature)."""
         return SDFEnergy(
@@ -292,8 +305,16 @@ class Registration:
         """
         timings = dict(self.timings)
         t = time.perf_counter()
+        start, init_summary = None, {}
+        if self.options.initialization != "none":
+            alignment = self.initial_alignment()
+            start = alignment.matrix - np.hstack([np.eye(3), np.zeros((3, 1))])
+            start = (start / self.weights[0, 0])[None]  # mode 0 is constant: T_0 = (A - [I 0]) / w_0
+            init_summary = alignment.summary()
+        timings["initialize"] = time.perf_counter() - t
+        t = time.perf_counter()
         energy = self.energy()
-        out = optimize_adaptive(energy, self.basis, self.options, progress)
+        out = optimize_adaptive(energy, self.basis, self.options, progress, start=start)
         timings["optimize"] = time.perf_counter() - t
         timings["sdf_queries"] = energy.seconds
 
@@ -328,6 +349,7 @@ class Registration:
                 "failed (source and target far apart or very differently oriented?)",
                 metrics["initial_sdf_rms"], metrics["final_sdf_rms"],
             )
+        metrics.update(init_summary)
         if ground_truth is not None:
             truth = ground_truth if isinstance(ground_truth, np.ndarray) else as_mesh(ground_truth, "ground truth")[0]
             metrics["identity_error"] = ground_truth_error(self.source_vertices, truth)

@@ -297,8 +297,9 @@ def optimize_adaptive(
     basis: LBSBasis,
     options: RegistrationOptions,
     progress: Callable[[ProgressEvent], None] | None = None,
+    start: np.ndarray | None = None,
 ) -> AdaptiveResult:
-    """Run Algorithm 1 from the rest pose ``basis.X0``.
+    """Run Algorithm 1 from the rest pose ``basis.X0`` (or from ``start``).
 
     Parameters
     ----------
@@ -313,6 +314,10 @@ def optimize_adaptive(
         with the same mode schedule (:mod:`.gauss_newton`).
     progress : callable, optional
         Called with a :class:`ProgressEvent` after every accepted step.
+    start : (k, 3, 4) float, optional
+        Starting coefficients of the first ``k`` modes (zero: the rest pose). The
+        initialization stage (:mod:`morphmodes_vol.initialize`) hands its global map over
+        as mode 0's block; the schedule is unchanged (stage 1 optimizes mode 0 from there).
 
     Returns
     -------
@@ -322,7 +327,7 @@ def optimize_adaptive(
     # adds wake-up costs, which are pathological on a busy machine (0.23 s instead of
     # 0.002 s for one 80 x 5000 x 80 product, measured with 2 cores under load).
     with threadpool_limits(limits=1, user_api="blas"):
-        return _optimize_adaptive(energy, basis, options, progress)
+        return _optimize_adaptive(energy, basis, options, progress, start)
 
 
 def _optimize_adaptive(
@@ -330,6 +335,7 @@ def _optimize_adaptive(
     basis: LBSBasis,
     options: RegistrationOptions,
     progress: Callable[[ProgressEvent], None] | None = None,
+    start: np.ndarray | None = None,
 ) -> AdaptiveResult:
     """The body of :func:`optimize_adaptive`."""
     t0 = time.perf_counter()
@@ -340,11 +346,18 @@ def _optimize_adaptive(
     except KeyError:
         raise OptionError(f"optimizer={options.optimizer!r}: expected one of {OPTIMIZERS}") from None
 
-    current = energy.evaluate(basis.X0)
-    initial = current
-    history.energy.append(current.energy)
     m0 = min(options.initial_modes, m_max)  # 1 in Algorithm 1; m_max for a fixed subspace
     T = np.zeros((m0 - 1, 3, 4))
+    if start is not None:
+        start = np.asarray(start, dtype=np.float64)
+        if start.ndim != 3 or start.shape[1:] != (3, 4):
+            raise ValueError(f"start must have shape (k, 3, 4), got {start.shape}")
+        k = min(start.shape[0], max(m_max, 1))
+        T = np.zeros((max(m0 - 1, k), 3, 4))
+        T[:k] = start[:k]
+    current = energy.evaluate(basis.deform(T))
+    initial = current
+    history.energy.append(current.energy)
     iteration = 0
     status: Status = "converged"
     if not _finite(current):
@@ -373,7 +386,8 @@ def _optimize_adaptive(
             break
         m = stage + 1
         stage_t0, stage_evals = time.perf_counter(), energy.evaluations
-        T = np.concatenate([T, np.zeros((1, 3, 4))])  # z <- [z; 0_12]
+        if T.shape[0] < m:
+            T = np.concatenate([T, np.zeros((1, 3, 4))])  # z <- [z; 0_12]
         eps = options.stall_threshold(stage)
         history.stage_starts.append(len(history.step_rms))
         stepper.start_stage(m)

@@ -1,0 +1,229 @@
+"""Accuracy study (issue 5): every lion and cat pose from its reference, plus the perturbation
+sweep of experiment 1 on two lion poses, registered by ours (default settings), by the
+paper-faithful settings, by NRICP and by RICP+NRICP; ground-truth error and time of each.
+
+    python scripts/accuracy_study.py                       # everything (long: see --methods)
+    python scripts/accuracy_study.py --methods nricp ricp+nricp
+    python scripts/accuracy_study.py --methods ours --set modes=40 --out results/acc_modes40
+    python scripts/accuracy_study.py --plot-only
+
+Pairs: ``lion-reference -> lion-01..09``, ``cat-reference -> cat-01..09``, and the lion
+reference rotated about its forward axis (z) through its box center by ``--angles`` degrees
+onto ``--sweep-targets`` (default lion-01 and lion-05). Ground-truth error:
+``mean_i ||registered_i - pose_i|| / bbox_diagonal(pose)`` (shared/data README).
+
+Methods:
+- ``ours``: :class:`morphmodes_vol.RegistrationOptions` defaults, with ``--set`` overrides;
+- ``paper``: the paper-faithful settings, :meth:`RegistrationOptions.paper_faithful`
+  (Algorithm 1's gradient descent from the rest pose, no initialization stage, 20 modes),
+  at ``--paper-grid`` (default 64, the default grid; the paper's optimizer takes 3-6 min per
+  pair there, so the whole column takes about two hours on 2 cores);
+- ``nricp``, ``ricp+nricp``: trimesh ``nricp_amberg`` with its default schedule, alone and
+  after rigid ICP (:mod:`morphmodes_vol.baselines`).
+
+Runs are appended to ``<out>/accuracy_runs.csv`` as they finish; a rerun skips the
+(pair, method) rows already there with the same configuration, so the study can be stopped
+and resumed, and columns can be filled by separate invocations. ``--redo METHOD`` drops a
+method's rows first.
+
+Writes ``<out>/accuracy_runs.csv``, ``accuracy_table.md`` (error and time of every method per
+pair, the means and the ratio RICP+NRICP / ours) and ``accuracy.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _data import ROOT, parse_overrides, write_csv  # noqa: E402
+from _exp import mesh_path, rotation  # noqa: E402
+
+import morphmodes_vol as mm  # noqa: E402
+from morphmodes_vol.baselines import nricp, prepare_pair  # noqa: E402
+from morphmodes_vol.mesh import load_mesh  # noqa: E402
+
+METHODS = ("ours", "paper", "nricp", "ricp+nricp")
+
+
+def pairs(angles: list[float], sweep_targets: list[str]) -> list[dict]:
+    """Every pair of the study: name, source, target and rotation angle of the source."""
+    out = []
+    for animal in ("lion", "cat"):
+        for i in range(1, 10):
+            out.append({"pair": f"{animal}-{i:02d}", "source": f"{animal}-reference",
+                        "target": f"{animal}-{i:02d}", "angle": 0.0})
+    for target in sweep_targets:
+        for a in angles:
+            if a == 0:
+                continue  # the unrotated pair is already in the pose list
+            out.append({"pair": f"{target} rot {a:+.0f}", "source": "lion-reference",
+                        "target": target, "angle": float(a)})
+    return out
+
+
+def rotated(V: np.ndarray, angle: float) -> np.ndarray:
+    """``V`` rotated about the z axis (the lion's forward axis) through its box center."""
+    if angle == 0:
+        return V
+    c = (V.max(axis=0) + V.min(axis=0)) / 2
+    return (V - c) @ rotation(2, angle).T + c
+
+
+def run_method(method: str, source, target, truth, options: "mm.RegistrationOptions") -> dict:
+    t = time.perf_counter()
+    if method in ("ours", "paper"):
+        r = mm.register(source, target, options, ground_truth=truth)
+        extra = {"evaluations": r.evaluations, "modes": r.modes, "status": r.status}
+    else:
+        r = nricp(source, target, rigid_first=method == "ricp+nricp", ground_truth=truth,
+                  pair=prepare_pair(source, target, options))
+        extra = {"evaluations": "", "modes": "", "status": r.status}
+    return {"identity_error": r.metrics["identity_error"], "error": r.metrics["ground_truth_error"],
+            "seconds": time.perf_counter() - t, **extra}
+
+
+def load(path: Path) -> list[dict]:
+    if not path.is_file():
+        return []
+    with open(path) as fh:
+        rows = list(csv.DictReader(fh))
+    for r in rows:
+        for k in ("angle", "identity_error", "error", "seconds"):
+            r[k] = float(r[k])
+    return rows
+
+
+def table(rows: list[dict], order: list[str]) -> str:
+    """Markdown: one line per pair, error and time of every method, and the summary lines."""
+    methods = [m for m in METHODS if any(r["method"] == m for r in rows)]
+    by = {(r["pair"], r["method"]): r for r in rows}
+    head = "| pair | identity | " + " | ".join(f"{m} error | {m} s" for m in methods)
+    ratio = "ours" in methods and "ricp+nricp" in methods
+    md = [head + (" | RICP+NRICP / ours |" if ratio else " |"),
+          "|---|---|" + "---|---|" * len(methods) + ("---|" if ratio else "")]
+    for p in order:
+        cells = [by.get((p, m)) for m in methods]
+        if not any(cells):
+            continue
+        ident = next(c for c in cells if c)["identity_error"]
+        line = f"| {p} | {ident:.4f} | " + " | ".join(
+            f"{c['error']:.4f} | {c['seconds']:.0f}" if c else " | " for c in cells)
+        if ratio:
+            o, b = by.get((p, "ours")), by.get((p, "ricp+nricp"))
+            line += f" | {b['error'] / o['error']:.2f} |" if o and b else " | |"
+        md.append(line)
+    # summary over the pairs every method has
+    common = [p for p in order if all((p, m) in by for m in methods)]
+    if common:
+        mean = {m: np.mean([by[(p, m)]["error"] for p in common]) for m in methods}
+        secs = {m: np.mean([by[(p, m)]["seconds"] for p in common]) for m in methods}
+        line = f"| **mean over {len(common)} pairs** | | " + " | ".join(
+            f"**{mean[m]:.4f}** | {secs[m]:.0f}" for m in methods)
+        if ratio:
+            line += f" | **{mean['ricp+nricp'] / mean['ours']:.2f}** |"
+        md.append(line)
+        if ratio:
+            worse = [p for p in common if by[(p, "ours")]["error"] > by[(p, "ricp+nricp")]["error"]]
+            md.append("")
+            md.append(f"Ours worse than RICP+NRICP on {len(worse)} of {len(common)} pairs"
+                      + (f": {', '.join(worse)}." if worse else "."))
+    return "\n".join(md) + "\n"
+
+
+def plot(rows: list[dict], order: list[str], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    methods = [m for m in METHODS if any(r["method"] == m for r in rows)]
+    by = {(r["pair"], r["method"]): r["error"] for r in rows}
+    ident = {r["pair"]: r["identity_error"] for r in rows}
+    present = [p for p in order if p in ident]
+    x = np.arange(len(present))
+    fig, ax = plt.subplots(figsize=(max(8, 0.38 * len(present)), 3.8))
+    ax.plot(x, [ident[p] for p in present], "k:", label="identity", lw=1)
+    for m, style in zip(METHODS, ("s-", "d--", "^-.", "o--")):
+        if m in methods:
+            ax.plot(x, [by.get((p, m), np.nan) for p in present], style, label=m, ms=4)
+    ax.set_xticks(x)
+    ax.set_xticklabels(present, rotation=70, fontsize=7)
+    ax.set_ylabel("ground-truth error / target diagonal")
+    ax.set_yscale("log")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS))
+    ap.add_argument("--pairs", nargs="*", default=None,
+                    help="only these pairs (names as in the table, e.g. lion-05 'lion-01 rot +30')")
+    ap.add_argument("--angles", type=float, nargs="+", default=[-30, -20, -10, 0, 10, 20, 30])
+    ap.add_argument("--sweep-targets", nargs="*", default=["lion-01", "lion-05"])
+    ap.add_argument("--set", nargs="*", default=[], metavar="OPTION=VALUE",
+                    help="override the defaults of 'ours', e.g. --set modes=40")
+    ap.add_argument("--paper-grid", type=int, default=64, help="quadrature grid of 'paper'")
+    ap.add_argument("--redo", nargs="*", default=[], choices=METHODS, help="drop these methods' rows first")
+    ap.add_argument("--out", default=str(ROOT / "results" / "accuracy_study"))
+    ap.add_argument("--plot-only", action="store_true", help="redraw the table and plot from the CSV")
+    args = ap.parse_args()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    csv_path = out / "accuracy_runs.csv"
+    plan = pairs(args.angles, args.sweep_targets)
+    order = [p["pair"] for p in plan]
+    rows = [r for r in load(csv_path) if r["method"] not in args.redo]
+
+    configs = {
+        "ours": mm.RegistrationOptions().replace(**parse_overrides(args.set)),
+        "paper": mm.RegistrationOptions.paper_faithful().replace(grid=args.paper_grid),
+        "nricp": mm.RegistrationOptions(),  # grid for the SDF residual metric only
+        "ricp+nricp": mm.RegistrationOptions(),
+    }
+    config_key = {m: json.dumps(o.to_dict(), sort_keys=True) for m, o in configs.items()}
+    for m in ("nricp", "ricp+nricp"):
+        config_key[m] = "trimesh nricp_amberg defaults"
+    if not args.plot_only:
+        done = {(r["pair"], r["method"]) for r in rows if r.get("config") == config_key[r["method"]]}
+        rows = [r for r in rows if (r["pair"], r["method"]) in done]  # other configurations are redone
+        cache: dict[str, tuple] = {}
+        for p in plan:
+            if args.pairs and p["pair"] not in args.pairs:
+                continue
+            for method in args.methods:
+                if (p["pair"], method) in done:
+                    continue
+                if p["source"] not in cache:
+                    cache[p["source"]] = load_mesh(mesh_path(p["source"]))
+                V0, F = cache[p["source"]]
+                target = mesh_path(p["target"])
+                truth = load_mesh(target)[0]
+                res = run_method(method, (rotated(V0, p["angle"]), F), target, truth, configs[method])
+                rows.append({**p, "method": method, **res, "config": config_key[method]})
+                print(f"{p['pair']:>16} {method:>10}: identity {res['identity_error']:.4f} -> "
+                      f"{res['error']:.4f} ({res['seconds']:.1f} s)", flush=True)
+                write_csv(csv_path, rows)
+        (out / "meta.json").write_text(json.dumps(
+            {"command": sys.argv, "configs": {m: json.loads(k) if k.startswith("{") else k
+                                              for m, k in config_key.items()}}, indent=2) + "\n")
+    text = table(rows, order)
+    (out / "accuracy_table.md").write_text(text)
+    if rows:
+        plot(rows, order, out / "accuracy.png")
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
