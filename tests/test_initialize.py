@@ -1,0 +1,142 @@
+"""The initialization stage (morphmodes_vol.initialize): hand-computed pieces, identities and
+synthetic recovery of known rigid motions."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+import morphmodes_vol as mm
+from morphmodes_vol.initialize import (_increment_map, _rodrigues, _Similarity, align,
+                                       candidate_rotations, rotation_angle)
+from morphmodes_vol.metrics import ground_truth_error
+from morphmodes_vol.primitives import bend, capsule
+from morphmodes_vol.sdf import Grid, signed_distance
+
+
+def asymmetric_blob():
+    """A tapered, flattened, bent capsule: no proper rotation maps it onto itself."""
+    V, F = capsule(height=1.0, radius=0.2, count=(16, 20))
+    s = (V[:, 2] - V[:, 2].min()) / np.ptp(V[:, 2])
+    V = V * np.c_[1.0 + 0.9 * s, 0.6 + 0 * s, 1.0 + 0 * s]
+    return bend(V, 1.2, axis=2, towards=0), F
+
+
+def test_candidate_rotations_are_the_24_cube_rotations_then_principal_frames():
+    R = candidate_rotations()
+    assert R.shape == (24, 3, 3)
+    assert np.allclose(R[0], np.eye(3))
+    assert np.allclose(np.linalg.det(R), 1.0)
+    # all distinct
+    flat = np.round(R.reshape(24, 9)).astype(int)
+    assert len({tuple(r) for r in flat}) == 24
+    A = Rotation.from_euler("xyz", [10, 20, 30], degrees=True).as_matrix()
+    B = Rotation.from_euler("xyz", [-40, 5, 70], degrees=True).as_matrix()
+    R = candidate_rotations(A, B)
+    assert R.shape == (28, 3, 3)
+    # each principal-frame candidate maps A's axes onto B's, up to sign
+    for Rk in R[24:]:
+        assert np.allclose(np.abs(Rk @ A), np.abs(B))
+        assert np.isclose(np.linalg.det(Rk), 1.0)
+
+
+def test_rodrigues_and_rotation_angle_match_scipy():
+    w = np.array([0.3, -1.1, 0.4])
+    assert np.allclose(_rodrigues(w), Rotation.from_rotvec(w).as_matrix())
+    assert np.isclose(rotation_angle(_rodrigues(w)), np.degrees(np.linalg.norm(w)))
+    assert np.allclose(_rodrigues(np.zeros(3)), np.eye(3))
+
+
+def test_increment_map_is_the_small_similarity_about_the_center():
+    rng = np.random.default_rng(0)
+    c, x = rng.random(3), rng.random((5, 3))
+    p = rng.standard_normal(7)
+    T = (_increment_map(c, True) @ p).reshape(3, 4)
+    w, t, s = p[:3], p[3:6], p[6]
+    expected = np.cross(w, x - c) + s * (x - c) + t
+    assert np.allclose(x @ T[:, :3].T + T[:, 3], expected)
+    assert _increment_map(c, False).shape == (12, 6)
+
+
+def test_similarity_compose_applies_the_increment_exactly():
+    rng = np.random.default_rng(1)
+    X = rng.random((7, 3))
+    S = _Similarity(_rodrigues(np.array([0.1, 0.2, 0.3])), np.array([0.5, 0, 0]), 1.2)
+    w, t, s, c = np.array([0, 0.4, 0]), np.array([0, 0, 0.1]), 0.2, np.array([0.3, 0.3, 0.3])
+    Y = S.apply(X)
+    expected = np.exp(s) * (Y - c) @ _rodrigues(w).T + c + t
+    assert np.allclose(S.compose(w, t, s, c).apply(X), expected)
+
+
+def _pair_grid(X, Y, res=28):
+    lo, hi = np.minimum(X.min(0), Y.min(0)), np.maximum(X.max(0), Y.max(0))
+    grid = Grid.covering(lo, hi, res, 0.1 * np.linalg.norm(hi - lo))
+    return grid, grid.points()
+
+
+def test_align_recovers_a_large_rotation_and_translation():
+    X, F = asymmetric_blob()
+    R = Rotation.from_rotvec(np.radians(120) * np.array([1, 1, 0]) / np.sqrt(2)).as_matrix()
+    t = np.array([0.3, -0.2, 0.1])
+    Y = X @ R.T + t
+    grid, Q = _pair_grid(X, Y)
+    g = signed_distance(Y, F, Q).value
+    al = align(X, F, Q, g, grid.cell_volume, kind="rigid", keep=6, switch=1.0)
+    assert rotation_angle(al.rotation.T @ R) < 10.0
+    assert np.sqrt(np.mean(np.sum((al.apply(X) - Y) ** 2, axis=1))) < 0.03 * np.linalg.norm(np.ptp(Y, 0))
+    assert al.energy < 0.05 * al.rest_energy
+    assert al.candidates == 29 and al.evaluations > al.candidates
+
+
+def test_align_of_a_translated_copy_is_the_translation_and_similarity_finds_the_scale():
+    X, F = asymmetric_blob()
+    t = np.array([0.1, 0.05, -0.08])
+    grid, Q = _pair_grid(X, X + t)
+    g = signed_distance(X + t, F, Q).value
+    al = align(X, F, Q, g, grid.cell_volume, kind="rigid", keep=1)
+    assert rotation_angle(al.rotation) < 2.0
+    assert np.allclose(al.apply(X), X + t, atol=0.01)
+    c = X.mean(0)
+    Y = 1.25 * (X - c) + c
+    grid, Q = _pair_grid(X, Y)
+    g = signed_distance(Y, F, Q).value
+    sim = align(X, F, Q, g, grid.cell_volume, kind="similarity", keep=1)
+    assert sim.scale == pytest.approx(1.25, rel=0.03)
+    rigid = align(X, F, Q, g, grid.cell_volume, kind="rigid", keep=1)
+    assert rigid.scale == 1.0 and sim.energy < 0.2 * rigid.energy
+
+
+def test_switch_zero_keeps_the_unrotated_start():
+    X, F = asymmetric_blob()
+    R = Rotation.from_rotvec([0, 0, np.pi * 0.9]).as_matrix()
+    Y = X @ R.T
+    grid, Q = _pair_grid(X, Y)
+    g = signed_distance(Y, F, Q).value
+    al = align(X, F, Q, g, grid.cell_volume, kind="rigid", keep=4, switch=0.0)
+    assert al.chosen == 0
+    assert set(al.refined_energies) >= {0} and len(al.refined_energies) == 4
+
+
+@pytest.mark.parametrize("optimizer", ["paper", "lm"])
+def test_registration_with_initialization_recovers_a_turned_target(optimizer):
+    X, F = asymmetric_blob()
+    R = Rotation.from_rotvec(np.radians(150) * np.array([0, 1, 0])).as_matrix()
+    Y = bend(X, 0.4, axis=2, towards=0) @ R.T + [0.2, 0, 0]
+    opts = mm.RegistrationOptions(grid=24, modes=3, optimizer=optimizer, max_iterations=200,
+                                  quadrature="band" if optimizer == "lm" else "full")
+    plain = mm.register((X, F), (Y, F), opts, ground_truth=Y)
+    init = mm.register((X, F), (Y, F), opts.replace(initialization="rigid"), ground_truth=Y)
+    assert plain.metrics["ground_truth_error"] > 0.1
+    assert init.metrics["ground_truth_error"] < 0.3 * plain.metrics["ground_truth_error"]
+    assert init.metrics["init_rotation_deg"] > 100
+    assert "initialize" in init.timings
+
+
+def test_initialization_options_are_checked():
+    with pytest.raises(mm.OptionError):
+        mm.RegistrationOptions(initialization="pca")
+    with pytest.raises(mm.OptionError):
+        mm.RegistrationOptions(init_switch=1.5)
+    with pytest.raises(mm.OptionError):
+        mm.RegistrationOptions(init_candidates=0)
+    p = mm.RegistrationOptions.paper_faithful()
+    assert p.initialization == "none" and p.optimizer == "paper" and p.quadrature == "full"
