@@ -16,7 +16,7 @@ import numpy as np
 
 from .errors import MorphModesError
 from .export import MESH_FORMATS, write_outputs
-from .options import OPTIMIZERS, PRECONDITIONERS, QUADRATURES, SIGN_METHODS, RegistrationOptions
+from .options import INITIALIZATIONS, OPTIMIZERS, PRECONDITIONERS, QUADRATURES, SIGN_METHODS, RegistrationOptions
 from .sdf.target import TARGET_BACKENDS, TARGET_SDF_SUFFIXES
 
 __all__ = ["main"]
@@ -81,6 +81,8 @@ def _options_from_args(args) -> RegistrationOptions:
         changes["target_sign"] = args.target_sign
     if getattr(args, "landmark_weight", None) is not None:
         changes["landmark_weight"] = args.landmark_weight
+    if args.init is not None:
+        changes["initialization"] = args.init
     return RegistrationOptions().replace(**changes)
 
 
@@ -103,6 +105,10 @@ def _add_common(p: argparse.ArgumentParser, default_grid: int, default_modes: in
                         f"blocks elsewhere (default {d.quadrature!r})")
     p.add_argument("--preconditioner", choices=list(PRECONDITIONERS), default=None,
                    help="'block' (default) or the paper's plain gradient step 'none'")
+    p.add_argument("--init", choices=list(INITIALIZATIONS), default=None,
+                   help="global alignment before the optimization: a rigid motion or similarity "
+                        "minimizing the SDF energy from several orientations (default "
+                        f"{d.initialization}; docs/method.md)")
     p.add_argument("--seed", type=int, default=d.seed, help="seed of the eigensolver's start vector")
     p.add_argument("--memory-limit", type=float, default=None, metavar="GB",
                    help=f"refuse runs estimated to need more memory (default {d.memory_limit_gb:g}; 0: no limit)")
@@ -127,6 +133,10 @@ def _summary(result, paths) -> str:
              f"optimize {result.timings['optimize']:.1f}s"]
     if result.status == "rolled_back":
         lines.append("a NaN or infinite energy stopped the run: the result is its last good state")
+    if "init_rotation_deg" in m:
+        lines.append(f"initial alignment: rotation {m['init_rotation_deg']:.1f} deg, scale "
+                     f"{m['init_scale']:.3f}, {m['init_evaluations']} coarse SDF evaluations, "
+                     f"{result.timings['initialize']:.1f}s")
     lines.append(f"SDF residual RMS: {m['initial_sdf_rms']:.4g} -> {m['final_sdf_rms']:.4g} "
                  "(fraction of the scene diagonal)")
     if "ground_truth_error" in m:

@@ -140,3 +140,24 @@ def test_initialization_options_are_checked():
         mm.RegistrationOptions(init_candidates=0)
     p = mm.RegistrationOptions.paper_faithful()
     assert p.initialization == "none" and p.optimizer == "paper" and p.quadrature == "full"
+
+
+def test_cli_init_flag_reaches_the_options_and_the_report(tmp_path, capsys):
+    import json
+
+    import trimesh
+
+    from morphmodes_vol.cli import main
+
+    X, F = asymmetric_blob()
+    Y = X @ Rotation.from_rotvec([0, 0.6, 0]).as_matrix().T
+    src, tgt = tmp_path / "src.obj", tmp_path / "tgt.obj"
+    trimesh.Trimesh(X, F, process=False).export(src)
+    trimesh.Trimesh(Y, F, process=False).export(tgt)
+    code = main(["register", str(src), str(tgt), "-o", str(tmp_path / "out"), "--grid", "16",
+                 "--modes", "2", "--init", "rigid", "-q"])
+    assert code == 0
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["options"]["initialization"] == "rigid"
+    assert report["metrics"]["init_rotation_deg"] > 20 and "initialize" in report["timings"]
+    assert "initial alignment: rotation" in capsys.readouterr().out
