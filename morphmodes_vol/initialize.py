@@ -13,7 +13,8 @@ Algorithm 1:
    quadrature nodes inside each shape on a coarse grid), so a differently sampled or
    partial surface does not bias them.
 2. *Screening.* Eq. (3) on a coarse grid (``init_grid`` nodes along the longest side) at
-   every candidate; the ``init_candidates`` lowest go on.
+   every candidate and at the rest pose; the unrotated start (centroids matched) and the
+   ``init_candidates - 1`` lowest others go on.
 3. *Refinement.* Each of those is refined by Levenberg-Marquardt on Eq. (3) restricted to
    rigid motions (6 parameters) or similarities (7): the Gauss-Newton model of
    :mod:`morphmodes_vol.optimize.gauss_newton` for one constant mode (a global affine map)
@@ -21,9 +22,16 @@ Algorithm 1:
    translation ``t`` and log-scale ``s`` to that affine increment
    (``dx = [w]_x (x - c) + s (x - c) + t``); a step is applied exactly (Rodrigues rotation,
    ``exp(s)`` scale) and kept when the true energy decreases.
-4. The lowest refined energy wins. Its map ``x -> A [x; 1]`` is handed to Algorithm 1 as the
-   coefficients of mode 0 (the constant mode, so ``T_0 = (A - [I 0]) / w_0``), which then
-   goes on with a full affine map and the deformation modes from there.
+4. *Choice, with an orientation prior.* The unrotated start's alignment is kept unless a
+   rotated start reaches an energy below ``init_switch`` times its energy. On the
+   articulated lion and cat poses the lowest rigid energy was a head-to-tail flip on 8 of
+   18 pairs (and a 95-degree error on one more), at energy ratios 0.68-1.00 to the
+   unrotated start; rotated starts that were right where the unrotated one was not won by
+   ratios of 0.38-0.55 on three pairs and 0.72 on one, which the prior misses
+   (docs/method.md). The
+   chosen map ``x -> A [x; 1]`` is handed to Algorithm 1 as the coefficients of mode 0 (the
+   constant mode, so ``T_0 = (A - [I 0]) / w_0``), which then goes on with a full affine
+   map and the deformation modes from there.
 """
 
 from __future__ import annotations

@@ -27,6 +27,7 @@ __all__ = [
     "surface_distance",
     "sdf_residual",
     "triangle_areas",
+    "edge_strain",
     "signed_volume",
     "best_affine_fit",
     "degeneracy",
@@ -139,6 +140,26 @@ def triangle_areas(V, F) -> np.ndarray:
     array([1.])
     """
     return 0.5 * np.linalg.norm(_cross(V, F), axis=1)
+
+
+def edge_strain(V0, V, F) -> float:
+    """Mean over the edges of ``|log(l / l0)|``, the stretch of every edge of the triangles
+    ``F`` from ``V0 (n, 3)`` to ``V (n, 3)``: 0 for an isometry, invariant to rigid motions
+    (not to scale). Each edge counts once per triangle side; a collapsed edge counts as a
+    stretch of 1e-12.
+
+    Examples
+    --------
+    >>> V0 = np.array([[0., 0, 0], [1, 0, 0], [0, 1, 0]]); F = np.array([[0, 1, 2]])
+    >>> round(edge_strain(V0, V0 @ np.diag([2., 1, 1]), F), 4)  # log 2 on 1 edge, log(sqrt(5/2)) on 1
+    0.3838
+    """
+    V0, V, F = np.asarray(V0, float), np.asarray(V, float), np.asarray(F, np.int64)
+    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    l0 = np.linalg.norm(V0[e[:, 0]] - V0[e[:, 1]], axis=1)
+    l1 = np.linalg.norm(V[e[:, 0]] - V[e[:, 1]], axis=1)
+    keep = l0 > 0
+    return float(np.mean(np.abs(np.log(np.maximum(l1[keep], 1e-12 * l0[keep]) / l0[keep]))))
 
 
 def signed_volume(V, F) -> float:

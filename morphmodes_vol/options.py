@@ -147,6 +147,13 @@ class RegistrationOptions:
     init_switch : float
         A rotated start wins only when its energy is below ``init_switch`` times the
         unrotated start's (an orientation prior; docs/method.md has the measurements).
+    init_keep_rest : bool
+        With an initialization, run Algorithm 1 both from the rest pose (the paper's start)
+        and from the aligned start, and keep the result that stretches the source's edges
+        least (:func:`morphmodes_vol.metrics.edge_strain`) among those whose energy is within
+        ``select_energy_factor`` of the lowest; ``False`` runs from the aligned start only.
+    select_energy_factor : float
+        See ``init_keep_rest``; at least 1.
     """
 
     grid: int = 64
@@ -184,6 +191,8 @@ class RegistrationOptions:
     init_grid: int = 32
     init_candidates: int = 6
     init_switch: float = 0.6
+    init_keep_rest: bool = True
+    select_energy_factor: float = 10.0
 
     @classmethod
     def paper_faithful(cls) -> "RegistrationOptions":
@@ -252,6 +261,9 @@ class RegistrationOptions:
         need(_is_int(self.init_candidates) and 1 <= self.init_candidates <= 29, "init_candidates",
              "an integer in [1, 29]")
         need(_is_real(self.init_switch) and 0 <= self.init_switch <= 1, "init_switch", "a float in [0, 1]")
+        need(isinstance(self.init_keep_rest, bool), "init_keep_rest", "True or False")
+        need(_is_real(self.select_energy_factor) and self.select_energy_factor >= 1,
+             "select_energy_factor", "a finite number >= 1")
 
     @property
     def resolved_target_grid(self) -> int:

@@ -22,7 +22,7 @@ from .errors import OptionError
 from .landmarks import LandmarkEnergy, Landmarks, as_landmarks, landmark_rms
 from .mesh import MeshLike, Normalization, as_mesh, bbox_diagonal, joint_normalization
 from .limits import check_memory, estimate_memory
-from .metrics import ground_truth_error, shape_metrics
+from .metrics import edge_strain, ground_truth_error, shape_metrics
 from .options import RegistrationOptions
 from .quadrature import BandEnergy
 from .repair import sdf_faces
@@ -105,8 +105,10 @@ class RegistrationResult:
 
     @property
     def evaluations(self) -> int:
-        """Number of full source-SDF evaluations."""
-        return self.history.evaluations
+        """Number of source-SDF evaluations on the quadrature, over every start
+        (``metrics["starts"]``; the initialization's coarse-grid evaluations are
+        ``metrics["init_evaluations"]``)."""
+        return int(self.metrics.get("evaluations_all_starts", self.history.evaluations))
 
     @property
     def modes(self) -> int:
@@ -277,6 +279,13 @@ class Registration:
                      kind=o.initialization, keep=o.init_candidates, switch=o.init_switch,
                      sign=o.source_sign)
 
+    def _comparable_energy(self, out) -> float:
+        """Eq. (3) of a run's result on the full grid (a band quadrature differs per run)."""
+        if self.options.quadrature == "full":
+            return float(out.final.energy)
+        ev = self.full_energy().evaluate(out.vertices)
+        return float(ev.energy)
+
     def full_energy(self) -> SDFEnergy:
         """Eq. (3) on every node of the quadrature grid (the paper's quadrature)."""
         return SDFEnergy(
@@ -305,18 +314,33 @@ class Registration:
         """
         timings = dict(self.timings)
         t = time.perf_counter()
-        start, init_summary = None, {}
+        starts: list[tuple[str, np.ndarray | None]] = [("rest", None)]
+        init_summary = {}
         if self.options.initialization != "none":
             alignment = self.initial_alignment()
-            start = alignment.matrix - np.hstack([np.eye(3), np.zeros((3, 1))])
-            start = (start / self.weights[0, 0])[None]  # mode 0 is constant: T_0 = (A - [I 0]) / w_0
+            T0 = alignment.matrix - np.hstack([np.eye(3), np.zeros((3, 1))])
+            T0 = (T0 / self.weights[0, 0])[None]  # mode 0 is constant: T_0 = (A - [I 0]) / w_0
             init_summary = alignment.summary()
+            aligned = ("aligned", T0)
+            starts = [starts[0], aligned] if self.options.init_keep_rest else [aligned]
         timings["initialize"] = time.perf_counter() - t
         t = time.perf_counter()
-        energy = self.energy()
-        out = optimize_adaptive(energy, self.basis, self.options, progress, start=start)
+        runs = []
+        for k, (label, start) in enumerate(starts):
+            if len(starts) > 1:
+                log.info("Algorithm 1 from start %d/%d (%s)", k + 1, len(starts), label)
+            energy = self.energy()
+            out = optimize_adaptive(energy, self.basis, self.options, progress, start=start)
+            runs.append(_StartRun(label, out, energy.seconds, self._comparable_energy(out),
+                                  edge_strain(self.X0, out.vertices, self.source_faces)))
+        chosen = _select_start(runs, self.options.select_energy_factor)
+        out = chosen.result
         timings["optimize"] = time.perf_counter() - t
-        timings["sdf_queries"] = energy.seconds
+        timings["sdf_queries"] = sum(r.sdf_seconds for r in runs)
+        if len(runs) > 1:
+            log.info("kept the start from the %s (edge strain %s, energy %s)", chosen.label,
+                     ", ".join(f"{r.label} {r.strain:.3f}" for r in runs),
+                     ", ".join(f"{r.label} {r.energy:.3g}" for r in runs))
 
         vertices = self.normalization.undo(out.vertices)
 
@@ -350,6 +374,11 @@ class Registration:
                 metrics["initial_sdf_rms"], metrics["final_sdf_rms"],
             )
         metrics.update(init_summary)
+        metrics["edge_strain"] = chosen.strain
+        metrics["start"] = chosen.label
+        metrics["starts"] = [{"start": r.label, "energy": r.energy, "edge_strain": r.strain,
+                              "evaluations": r.result.history.evaluations} for r in runs]
+        metrics["evaluations_all_starts"] = sum(r.result.history.evaluations for r in runs)
         if ground_truth is not None:
             truth = ground_truth if isinstance(ground_truth, np.ndarray) else as_mesh(ground_truth, "ground truth")[0]
             metrics["identity_error"] = ground_truth_error(self.source_vertices, truth)
@@ -388,6 +417,28 @@ class Registration:
         after = landmark_rms(vertices, self.landmarks)
         return {"landmarks": len(self.landmarks), "initial_landmark_rms": before,
                 "landmark_rms": after, "landmark_rms_fraction": after / target_diagonal}
+
+
+@dataclass
+class _StartRun:
+    """Algorithm 1 from one start: its result, SDF-query time, full-grid energy, edge strain."""
+
+    label: str
+    result: object
+    sdf_seconds: float
+    energy: float
+    strain: float
+
+
+def _select_start(runs: list[_StartRun], factor: float) -> _StartRun:
+    """The least distorted run (lowest edge strain) among those whose energy is within
+    ``factor`` of the lowest: the same body in another pose is close to an isometry, and a
+    registration with wrong correspondences fits the SDF as well but stretches the surface
+    more (docs/method.md)."""
+    lowest = min(r.energy for r in runs if np.isfinite(r.energy)) if any(
+        np.isfinite(r.energy) for r in runs) else np.inf
+    eligible = [r for r in runs if np.isfinite(r.energy) and r.energy <= factor * lowest] or runs[:1]
+    return min(eligible, key=lambda r: r.strain)
 
 
 def _as_target_sdf(target, options: RegistrationOptions) -> TargetSDF | None:

@@ -161,3 +161,30 @@ def test_cli_init_flag_reaches_the_options_and_the_report(tmp_path, capsys):
     assert report["options"]["initialization"] == "rigid"
     assert report["metrics"]["init_rotation_deg"] > 20 and "initialize" in report["timings"]
     assert "initial alignment: rotation" in capsys.readouterr().out
+
+
+def test_select_start_prefers_the_least_distorted_of_the_runs_that_fit():
+    from morphmodes_vol.register import _select_start, _StartRun
+
+    a = _StartRun("rest", None, 0.0, energy=1e-6, strain=0.5)
+    b = _StartRun("aligned", None, 0.0, energy=6e-6, strain=0.3)
+    assert _select_start([a, b], 10.0) is b           # fits within 10x: the less stretched wins
+    assert _select_start([a, b], 5.0) is a            # fits 6x worse: not eligible
+    c = _StartRun("aligned", None, 0.0, energy=float("nan"), strain=0.0)
+    assert _select_start([a, c], 10.0) is a           # a non-finite energy is never chosen
+
+
+def test_two_starts_are_run_and_reported():
+    X, F = asymmetric_blob()
+    Y = bend(X, 0.5, axis=2, towards=0)
+    opts = mm.RegistrationOptions(grid=16, modes=2, optimizer="lm", quadrature="band",
+                                  initialization="rigid")
+    r = mm.register((X, F), (Y, F), opts, ground_truth=Y)
+    starts = r.metrics["starts"]
+    assert [s["start"] for s in starts] == ["rest", "aligned"]
+    assert r.metrics["start"] in ("rest", "aligned")
+    assert r.evaluations == sum(s["evaluations"] for s in starts) > r.history.evaluations
+    chosen = next(s for s in starts if s["start"] == r.metrics["start"])
+    assert chosen["edge_strain"] == r.metrics["edge_strain"]
+    one = mm.register((X, F), (Y, F), opts.replace(init_keep_rest=False))
+    assert [s["start"] for s in one.metrics["starts"]] == ["aligned"]
