@@ -71,6 +71,8 @@ def _options_from_args(args) -> RegistrationOptions:
         changes["optimizer"] = args.optimizer
         if args.quadrature is None:  # each optimizer with its quadrature unless asked
             changes["quadrature"] = "band" if args.optimizer == "lm" else "full"
+        if args.optimizer == "paper" and args.init is None:  # the paper starts at the rest pose
+            changes["initialization"] = "none"
     if args.quadrature is not None:
         changes["quadrature"] = args.quadrature
     if args.memory_limit is not None:
@@ -97,9 +99,10 @@ def _add_common(p: argparse.ArgumentParser, default_grid: int, default_modes: in
     p.add_argument("--max-iterations", type=int, default=None,
                    help=f"cap on gradient steps over all stages (default {d.max_iterations})")
     p.add_argument("--optimizer", choices=list(OPTIMIZERS), default=None,
-                   help=f"'paper' (Algorithm 1's gradient descent, with --quadrature full) or "
-                        f"'lm' (the fast path: Levenberg-Marquardt in the subspace, with "
-                        f"--quadrature band), unless --quadrature is given (default {d.optimizer!r})")
+                   help=f"'lm' (Levenberg-Marquardt in the subspace, with --quadrature band) or "
+                        f"'paper' (Algorithm 1's gradient descent from the rest pose: with "
+                        f"--quadrature full and --init none), unless those are given "
+                        f"(default {d.optimizer!r})")
     p.add_argument("--quadrature", choices=list(QUADRATURES), default=None,
                    help=f"'full' grid (Eq. 3) or 'band': full grid near the surfaces, coarse "
                         f"blocks elsewhere (default {d.quadrature!r})")

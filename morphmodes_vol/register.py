@@ -314,23 +314,24 @@ class Registration:
         """
         timings = dict(self.timings)
         t = time.perf_counter()
-        starts: list[tuple[str, np.ndarray | None]] = [("rest", None)]
+        starts: list[tuple[str, np.ndarray | None, RegistrationOptions]] = [("rest", None, self.options)]
         init_summary = {}
         if self.options.initialization != "none":
             alignment = self.initial_alignment()
             T0 = alignment.matrix - np.hstack([np.eye(3), np.zeros((3, 1))])
             T0 = (T0 / self.weights[0, 0])[None]  # mode 0 is constant: T_0 = (A - [I 0]) / w_0
             init_summary = alignment.summary()
-            aligned = ("aligned", T0)
+            aligned = ("aligned", T0, self.options.replace(
+                lm_iterations_per_stage=self.options.init_lm_iterations_per_stage))
             starts = [starts[0], aligned] if self.options.init_keep_rest else [aligned]
         timings["initialize"] = time.perf_counter() - t
         t = time.perf_counter()
         runs = []
-        for k, (label, start) in enumerate(starts):
+        for k, (label, start, options) in enumerate(starts):
             if len(starts) > 1:
                 log.info("Algorithm 1 from start %d/%d (%s)", k + 1, len(starts), label)
             energy = self.energy()
-            out = optimize_adaptive(energy, self.basis, self.options, progress, start=start)
+            out = optimize_adaptive(energy, self.basis, options, progress, start=start)
             runs.append(_StartRun(label, out, energy.seconds, self._comparable_energy(out),
                                   edge_strain(self.X0, out.vertices, self.source_faces)))
         chosen = _select_start(runs, self.options.select_energy_factor)

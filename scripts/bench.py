@@ -1,5 +1,6 @@
-"""Speed benchmark: ours (the fast path ``--optimizer lm`` and the default ``--optimizer paper``) against trimesh's
-non-rigid ICP (Amberg et al. 2007, ``trimesh.registration.nricp_amberg`` with its defaults),
+"""Speed benchmark: ours (the default settings; ``--init none``, one Levenberg-Marquardt run
+from the rest pose, the previous fast path; and ``--optimizer paper``, the paper-faithful
+settings) against trimesh's non-rigid ICP (Amberg et al. 2007, ``trimesh.registration.nricp_amberg`` with its defaults),
 in one run, on the same machine.
 
     python scripts/bench.py [--pairs 05 01] [--out results/bench] [--set grid=64 ...]
@@ -52,7 +53,9 @@ def run_ours(source, target, truth, overrides: dict) -> dict:
     import morphmodes_vol as mm
 
     t0 = time.perf_counter()
-    options = mm.RegistrationOptions().replace(**overrides)
+    base = overrides.pop("_preset", None)
+    options = (mm.RegistrationOptions.paper_faithful() if base == "paper"
+               else mm.RegistrationOptions()).replace(**overrides)
     reg = mm.Registration(_load(source), _load(target), options)
     result = reg.run()
     t = time.perf_counter()
@@ -64,16 +67,19 @@ def run_ours(source, target, truth, overrides: dict) -> dict:
     h = result.history
     timings = dict(result.timings)
     timings["export"] = export
+    evaluations = result.evaluations  # every start's
     return {
         "wall_s": wall,
         "error": mm.ground_truth_error(result.vertices, truth_V),
         "identity_error": mm.ground_truth_error(reg.source_vertices, truth_V),
-        "evaluations": h.evaluations,
+        "evaluations": evaluations,
+        "init_evaluations": result.metrics.get("init_evaluations", 0),
+        "start": result.metrics.get("start", "rest"),
         "refreshes": len(h.refreshes),
         "steps": len(h.step_rms),
         "modes": result.modes,
         "status": result.status,
-        "seconds_per_evaluation": timings["sdf_queries"] / max(h.evaluations, 1),
+        "seconds_per_evaluation": timings["sdf_queries"] / max(evaluations, 1),
         "sdf_share_of_optimize": timings["sdf_queries"] / max(timings["optimize"], 1e-12),
         "timings": timings,
         "peak_rss_mb": _peak_rss_mb(),
@@ -132,14 +138,14 @@ def _row(pair: str, method: str, r: dict, nricp_wall: float | None) -> str:
     if "timings" in r:
         t = r["timings"]
         stages = " / ".join(f"{t[k]:.1f}" for k in
-                            ("preprocess", "target_sdf", "eigenbasis", "optimize", "export"))
+                            ("preprocess", "target_sdf", "eigenbasis", "initialize", "optimize", "export"))
     return (f"| {pair} | {method} | {r['identity_error']:.4f} | {r['error']:.4f} | "
             f"{r['wall_s']:.1f} | {ratio} | {ev} | {spe} | {share} | {stages} | "
             f"{r['peak_rss_mb']:.0f} |")
 
 
 HEADER = ("| pair | method | identity error | error | wall s | / NRICP | SDF evals | ms / eval "
-          "| SDF share | preprocess / target SDF / eigenbasis / optimize / export (s) "
+          "| SDF share | preprocess / target SDF / eigenbasis / initialize / optimize / export (s) "
           "| peak RSS MB |\n|---|---|---|---|---|---|---|---|---|---|---|")
 
 
@@ -149,9 +155,11 @@ def main() -> int:
     ap.add_argument("--pairs", nargs="*", default=["05", "01"], help="lion poses")
     ap.add_argument("--out", default=str(ROOT / "results" / "bench"))
     ap.add_argument("--set", nargs="*", default=[], metavar="OPTION=VALUE",
-                    help="override options of *both* of our runs, e.g. --set grid=48")
-    ap.add_argument("--methods", nargs="*", default=["lm", "paper", "nricp"],
-                    choices=["lm", "paper", "nricp"])
+                    help="override options of every run of ours, e.g. --set grid=48")
+    ap.add_argument("--methods", nargs="*", default=["default", "lm", "paper", "nricp"],
+                    choices=["default", "lm", "paper", "nricp"],
+                    help="default: RegistrationOptions(); lm: --init none (one run from the rest "
+                         "pose); paper: RegistrationOptions.paper_faithful(); nricp: trimesh")
     args = ap.parse_args()
     overrides = parse_overrides(args.set)
 
@@ -166,13 +174,14 @@ def main() -> int:
         results = {}
         if "nricp" in args.methods:
             results["trimesh nricp_amberg"] = _in_child(run_nricp, source, target, target)
-        if "lm" in args.methods:  # the fast path
-            results["ours, --optimizer lm"] = _in_child(
-                run_ours, source, target, target, {"optimizer": "lm", "quadrature": "band", **overrides})
-        if "paper" in args.methods:  # the default
+        if "default" in args.methods:
+            results["ours, default"] = _in_child(run_ours, source, target, target, dict(overrides))
+        if "lm" in args.methods:  # the fast path before the initialization stage
+            results["ours, --init none"] = _in_child(
+                run_ours, source, target, target, {"initialization": "none", **overrides})
+        if "paper" in args.methods:  # the paper-faithful settings
             results["ours, --optimizer paper"] = _in_child(
-                run_ours, source, target, target,
-                {"optimizer": "paper", "quadrature": "full", **overrides})
+                run_ours, source, target, target, {"_preset": "paper", **overrides})
         nricp_wall = results.get("trimesh nricp_amberg", {}).get("wall_s")
         for method, r in results.items():
             line = _row(name, method, r, nricp_wall)

@@ -106,7 +106,7 @@ def test_iteration_caps_and_stage_bookkeeping(optimizer):
     target = bend(V, np.deg2rad(40))
     caps = dict(max_iterations_per_stage=5, lm_iterations_per_stage=5, lm_stall_decrease=0.0)
     r = mm.register((V, F), (target, F), grid=16, modes=6, max_iterations=10, optimizer=optimizer,
-                    stall_start=1e-9, stall_end=1e-9, **caps)
+                    stall_start=1e-9, stall_end=1e-9, initialization="none", **caps)
     h = r.history
     assert r.status == "max_iterations"
     assert r.modes == 2 and r.T.shape == (2, 3, 4)  # no empty third mode
@@ -115,7 +115,7 @@ def test_iteration_caps_and_stage_bookkeeping(optimizer):
     assert len(h.stage_seconds) == 2 and sum(h.stage_evaluations) + 1 == h.evaluations
     r = mm.register((V, F), (target, F), grid=16, modes=2, max_iterations_per_stage=3,
                     lm_iterations_per_stage=3, lm_stall_decrease=0.0, optimizer=optimizer,
-                    stall_start=1e-9, stall_end=1e-9)
+                    stall_start=1e-9, stall_end=1e-9, initialization="none")
     assert r.status == "stage_cap" and r.modes == 2
 
 
