@@ -152,3 +152,16 @@ def test_lion_reference_onto_lion_01_halves_the_error(data_dir):
     tgt = data_dir / "lion-poses" / "lion-01.obj"
     result = mm.register(src, tgt, ground_truth=tgt)
     assert result.metrics["ground_truth_error"] < 0.5 * result.metrics["identity_error"]
+
+
+@pytest.mark.realdata
+@pytest.mark.slow
+def test_lion_reference_onto_lion_05_large_turn_is_registered(data_dir):
+    """The pose the paper's start gets wrong (the lion rears up, turning by ~70 degrees): the
+    default's initial alignment and two starts bring it below a third of the identity error
+    (measured 0.063 against 0.39; 0.31 from the rest pose alone)."""
+    src = data_dir / "lion-poses" / "lion-reference.obj"
+    tgt = data_dir / "lion-poses" / "lion-05.obj"
+    result = mm.register(src, tgt, ground_truth=tgt)
+    assert result.metrics["start"] == "aligned"
+    assert result.metrics["ground_truth_error"] < result.metrics["identity_error"] / 3
