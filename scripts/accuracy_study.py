@@ -80,11 +80,12 @@ def run_method(method: str, source, target, truth, options: "mm.RegistrationOpti
     t = time.perf_counter()
     if method in ("ours", "paper"):
         r = mm.register(source, target, options, ground_truth=truth)
-        extra = {"evaluations": r.evaluations, "modes": r.modes, "status": r.status}
+        extra = {"evaluations": r.evaluations, "modes": r.modes, "status": r.status,
+                 "start": r.metrics.get("start", "rest"), "edge_strain": r.metrics.get("edge_strain", "")}
     else:
         r = nricp(source, target, rigid_first=method == "ricp+nricp", ground_truth=truth,
                   pair=prepare_pair(source, target, options))
-        extra = {"evaluations": "", "modes": "", "status": r.status}
+        extra = {"evaluations": "", "modes": "", "status": r.status, "start": "", "edge_strain": ""}
     return {"identity_error": r.metrics["identity_error"], "error": r.metrics["ground_truth_error"],
             "seconds": time.perf_counter() - t, **extra}
 
