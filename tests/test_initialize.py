@@ -8,7 +8,6 @@ from scipy.spatial.transform import Rotation
 import morphmodes_vol as mm
 from morphmodes_vol.initialize import (_increment_map, _rodrigues, _Similarity, align,
                                        candidate_rotations, rotation_angle)
-from morphmodes_vol.metrics import ground_truth_error
 from morphmodes_vol.primitives import bend, capsule
 from morphmodes_vol.sdf import Grid, signed_distance
 
