@@ -329,6 +329,10 @@ def align(
     if best_other is not None and refined[best_other] < switch * refined[0]:
         best_i = best_other
     best = finals[best_i]
+    if best_other is not None:
+        log.info("orientation prior: best rotated start %.4g, unrotated %.4g (ratio %.2f, switch "
+                 "below %.2f)", refined[best_other], refined[0],
+                 refined[best_other] / max(refined[0], 1e-300), switch)
     result = InitialAlignment(
         matrix=best.matrix(), scale=float(best.scale), energy=refined[best_i],
         rest_energy=float(rest.energy), candidates=len(starts), chosen=best_i,

@@ -156,8 +156,8 @@ class RegistrationOptions:
     init_lm_iterations_per_stage : int
         ``lm_iterations_per_stage`` of the run from the aligned start. The run from the
         rest pose keeps ``lm_iterations_per_stage`` (3). On the 18 lion and cat poses the
-        kept result's mean ground-truth error was 0.096 with 3 and 10, 0.107 with 10 for
-        both runs (docs/method.md).
+        kept result's mean ground-truth error was 0.096 with 3 (rest) and 10 (aligned),
+        0.117 with 3 for both runs and 0.107 with 10 for both (docs/method.md).
     """
 
     grid: int = 64
