@@ -308,23 +308,34 @@ def align(
     # every rotation about the centroids (the identity first), and the rest pose itself (last)
     starts = [_Similarity(R, ct - scale * R @ cs, scale) for R in rotations]
     starts.append(_Similarity(np.eye(3), np.zeros(3), 1.0))
-    screened = np.array([energy.evaluate(S.apply(X0)).energy for S in starts])
-    # the unrotated start is always refined; the best screened others join it
-    others = [int(i) for i in np.argsort(screened, kind="stable") if i != 0]
-    order = [0] + others[: max(0, keep - 1)]
+    screened = np.empty(len(starts))
+
+    def rank(j: int) -> tuple:  # ascending energy, NaN last, ties by index (a stable sort)
+        e = screened[j]
+        return (bool(np.isnan(e)), 0.0 if np.isnan(e) else float(e), j)
+
+    # the unrotated start is always refined and the best screened others join it; their
+    # screening evaluations are kept to start the refinement from (only theirs: memory)
+    kept: dict[int, EnergyEvaluation] = {}
+    for i, S in enumerate(starts):
+        ev = rest if i == len(starts) - 1 else energy.evaluate(S.apply(X0))
+        screened[i], kept[i] = ev.energy, ev
+        others = [j for j in kept if j != 0]
+        if len(others) > max(0, keep - 1):
+            del kept[max(others, key=rank)]
+    order = [0] + sorted((j for j in kept if j != 0), key=rank)
 
     refined, finals = {}, {}
-    for rank, i in enumerate(order):
-        S0 = starts[i]
-        S, ev = _refine(energy, X0, S0, energy.evaluate(S0.apply(X0)), kind == "similarity", iterations)
+    for rank_i, i in enumerate(order):
+        S, ev = _refine(energy, X0, starts[i], kept[i], kind == "similarity", iterations)
         refined[i], finals[i] = float(ev.energy), S
         if progress is not None:
-            progress(f"candidate {rank + 1}/{len(order)}: rotation {rotation_angle(S.R):.0f} deg, "
+            progress(f"candidate {rank_i + 1}/{len(order)}: rotation {rotation_angle(S.R):.0f} deg, "
                      f"energy {screened[i]:.3g} -> {ev.energy:.3g}")
     # orientation prior: keep the unrotated start's alignment unless another start reaches
     # an energy lower by the factor ``switch`` (docs/method.md: on articulated poses the SDF
     # energy alone often prefers a wrong orientation)
-    best_other = min(others[: max(0, keep - 1)], key=lambda i: refined[i], default=None)
+    best_other = min(order[1:], key=lambda i: refined[i], default=None)
     best_i = 0
     if best_other is not None and refined[best_other] < switch * refined[0]:
         best_i = best_other
