@@ -161,10 +161,15 @@ def candidate_rotations(source_axes: np.ndarray | None = None, target_axes: np.n
     return np.array(rots)
 
 
+def _skew(w: np.ndarray) -> np.ndarray:
+    """``[w]_x (3, 3)``: ``_skew(w) @ v == np.cross(w, v)``."""
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
 def _rodrigues(w: np.ndarray) -> np.ndarray:
     """Rotation matrix of the rotation vector ``w (3,)``."""
     theta = float(np.linalg.norm(w))
-    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    K = _skew(w)
     if theta < 1e-12:
         return np.eye(3) + K
     K /= theta
@@ -179,7 +184,7 @@ def _increment_map(c: np.ndarray, similarity: bool) -> np.ndarray:
         p = np.zeros(7)
         p[k] = 1.0
         w, t, s = p[:3], p[3:6], p[6]
-        Lin = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]]) + s * np.eye(3)
+        Lin = _skew(w) + s * np.eye(3)
         T = np.hstack([Lin, (t - Lin @ c)[:, None]])
         cols.append(T.reshape(-1))
     return np.array(cols).T
