@@ -17,8 +17,8 @@ import numpy as np
 
 from .eigenbasis import LBSBasis, mesh_skinning_weights, to_paper_z
 from .energy import SDFEnergy
-from .initialize import InitialAlignment, align
 from .errors import OptionError
+from .initialize import InitialAlignment, align
 from .landmarks import LandmarkEnergy, Landmarks, as_landmarks, landmark_rms
 from .mesh import MeshLike, Normalization, as_mesh, bbox_diagonal, joint_normalization
 from .limits import check_memory, estimate_memory
@@ -437,10 +437,11 @@ def _select_start(runs: list[_StartRun], factor: float) -> _StartRun:
     ``factor`` of the lowest: the same body in another pose is close to an isometry, and a
     registration with wrong correspondences fits the SDF as well but stretches the surface
     more (docs/method.md)."""
-    lowest = min(r.energy for r in runs if np.isfinite(r.energy)) if any(
-        np.isfinite(r.energy) for r in runs) else np.inf
-    eligible = [r for r in runs if np.isfinite(r.energy) and r.energy <= factor * lowest] or runs[:1]
-    return min(eligible, key=lambda r: r.strain)
+    finite = [r for r in runs if np.isfinite(r.energy)]
+    if not finite:
+        return runs[0]
+    lowest = min(r.energy for r in finite)
+    return min((r for r in finite if r.energy <= factor * lowest), key=lambda r: r.strain)
 
 
 def _as_target_sdf(target, options: RegistrationOptions) -> TargetSDF | None:
