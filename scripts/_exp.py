@@ -53,6 +53,12 @@ def rotation(axis: int, degrees: float) -> np.ndarray:
     return R
 
 
+def rotated_source(V: np.ndarray, axis: int, angle: float) -> np.ndarray:
+    """``V`` rotated by ``angle`` degrees about coordinate axis ``axis`` through its box center."""
+    c = (V.max(axis=0) + V.min(axis=0)) / 2
+    return (V - c) @ rotation(axis, angle).T + c
+
+
 def row_of(result, **extra) -> dict:
     """One table row: ``extra`` then the metric columns of a registration or baseline."""
     row = dict(extra)

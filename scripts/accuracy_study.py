@@ -33,7 +33,6 @@ pair, the means and the ratio RICP+NRICP / ours) and ``accuracy.png``.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import sys
 import time
@@ -43,7 +42,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _data import ROOT, parse_overrides, write_csv  # noqa: E402
-from _exp import mesh_path, rotation  # noqa: E402
+from _exp import load_rows, mesh_path, rotated_source  # noqa: E402
 
 import morphmodes_vol as mm  # noqa: E402
 from morphmodes_vol.baselines import nricp, prepare_pair  # noqa: E402
@@ -68,14 +67,6 @@ def pairs(angles: list[float], sweep_targets: list[str]) -> list[dict]:
     return out
 
 
-def rotated(V: np.ndarray, angle: float) -> np.ndarray:
-    """``V`` rotated about the z axis (the lion's forward axis) through its box center."""
-    if angle == 0:
-        return V
-    c = (V.max(axis=0) + V.min(axis=0)) / 2
-    return (V - c) @ rotation(2, angle).T + c
-
-
 def run_method(method: str, source, target, truth, options: "mm.RegistrationOptions") -> dict:
     t = time.perf_counter()
     if method in ("ours", "paper"):
@@ -88,17 +79,6 @@ def run_method(method: str, source, target, truth, options: "mm.RegistrationOpti
         extra = {"evaluations": "", "modes": "", "status": r.status, "start": "", "edge_strain": ""}
     return {"identity_error": r.metrics["identity_error"], "error": r.metrics["ground_truth_error"],
             "seconds": time.perf_counter() - t, **extra}
-
-
-def load(path: Path) -> list[dict]:
-    if not path.is_file():
-        return []
-    with open(path) as fh:
-        rows = list(csv.DictReader(fh))
-    for r in rows:
-        for k in ("angle", "identity_error", "error", "seconds"):
-            r[k] = float(r[k])
-    return rows
 
 
 def table(rows: list[dict], order: list[str]) -> str:
@@ -184,7 +164,8 @@ def main() -> int:
     csv_path = out / "accuracy_runs.csv"
     plan = pairs(args.angles, args.sweep_targets)
     order = [p["pair"] for p in plan]
-    rows = [r for r in load(csv_path) if r["method"] not in args.redo]
+    rows = load_rows(out, "accuracy_runs") if csv_path.is_file() else []
+    rows = [r for r in rows if r["method"] not in args.redo]
 
     configs = {
         "ours": mm.RegistrationOptions().replace(**parse_overrides(args.set)),
@@ -210,7 +191,9 @@ def main() -> int:
                 V0, F = cache[p["source"]]
                 target = mesh_path(p["target"])
                 truth = load_mesh(target)[0]
-                res = run_method(method, (rotated(V0, p["angle"]), F), target, truth, configs[method])
+                # turned about z, the lion's forward axis (the unturned poses as loaded)
+                V = rotated_source(V0, 2, p["angle"]) if p["angle"] else V0
+                res = run_method(method, (V, F), target, truth, configs[method])
                 rows.append({**p, "method": method, **res, "config": config_key[method]})
                 print(f"{p['pair']:>16} {method:>10}: identity {res['identity_error']:.4f} -> "
                       f"{res['error']:.4f} ({res['seconds']:.1f} s)", flush=True)

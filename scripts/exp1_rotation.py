@@ -25,7 +25,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _exp import (METRIC_COLUMNS, MeshStore, add_common, line_plot, load_rows, options_from,  # noqa: E402
-                  rotation, row_of, save_meta, start, write_table)
+                  rotated_source, row_of, save_meta, start, write_table)
 
 import morphmodes_vol as mm  # noqa: E402
 from morphmodes_vol.baselines import nricp, prepare_pair  # noqa: E402
@@ -34,11 +34,6 @@ from morphmodes_vol.metrics import vertex_errors  # noqa: E402
 from morphmodes_vol.render import Panel, render_panels  # noqa: E402
 
 METHODS = ("nricp", "ricp+nricp", "ours")
-
-
-def rotated_source(V: np.ndarray, axis: int, angle: float) -> np.ndarray:
-    c = (V.max(axis=0) + V.min(axis=0)) / 2
-    return (V - c) @ rotation(axis, angle).T + c
 
 
 def summary(rows: list[dict]) -> str:
