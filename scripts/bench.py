@@ -46,15 +46,16 @@ def _load(path_or_pair):
     return mm.as_mesh(path_or_pair, str(path_or_pair))
 
 
-def run_ours(source, target, truth, overrides: dict) -> dict:
-    """One registration with our method, timed stage by stage (runs in a child process)."""
+def run_ours(source, target, truth, overrides: dict, preset: str = "default") -> dict:
+    """One registration with our method, timed stage by stage (runs in a child process):
+    ``RegistrationOptions()`` (``preset="default"``) or ``paper_faithful()`` (``"paper"``)
+    with ``overrides``."""
     import numpy as np
 
     import morphmodes_vol as mm
 
     t0 = time.perf_counter()
-    base = overrides.pop("_preset", None)
-    options = (mm.RegistrationOptions.paper_faithful() if base == "paper"
+    options = (mm.RegistrationOptions.paper_faithful() if preset == "paper"
                else mm.RegistrationOptions()).replace(**overrides)
     reg = mm.Registration(_load(source), _load(target), options)
     result = reg.run()
@@ -175,13 +176,13 @@ def main() -> int:
         if "nricp" in args.methods:
             results["trimesh nricp_amberg"] = _in_child(run_nricp, source, target, target)
         if "default" in args.methods:
-            results["ours, default"] = _in_child(run_ours, source, target, target, dict(overrides))
+            results["ours, default"] = _in_child(run_ours, source, target, target, overrides)
         if "lm" in args.methods:  # the fast path before the initialization stage
             results["ours, --init none"] = _in_child(
                 run_ours, source, target, target, {"initialization": "none", **overrides})
         if "paper" in args.methods:  # the paper-faithful settings
             results["ours, --optimizer paper"] = _in_child(
-                run_ours, source, target, target, {"_preset": "paper", **overrides})
+                run_ours, source, target, target, overrides, "paper")
         nricp_wall = results.get("trimesh nricp_amberg", {}).get("wall_s")
         for method, r in results.items():
             line = _row(name, method, r, nricp_wall)
