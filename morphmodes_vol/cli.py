@@ -264,6 +264,8 @@ def cmd_run(args) -> int:
     print(f"{counts['ok']} registered, {counts['skipped']} already complete, {counts['failed']} failed "
           f"in {run.seconds:.1f}s; summary: " + ", ".join(str(p) for p in run.paths.values()))
     return 1 if run.failed else 0
+
+
 def cmd_sdf(args) -> int:
     from .mesh import as_mesh, bbox_diagonal
     from .sdf import Grid, build_target_sdf
