@@ -138,7 +138,8 @@ def _summary(result, paths) -> str:
         lines.append("a NaN or infinite energy stopped the run: the result is its last good state")
     if "init_rotation_deg" in m:
         lines.append(f"initial alignment: rotation {m['init_rotation_deg']:.1f} deg, scale "
-                     f"{m['init_scale']:.3f}, {m['init_evaluations']} coarse SDF evaluations, "
+                     f"{m['init_scale']:.3f}, {m['init_evaluations']} evaluations of the source field "
+                     f"({m['init_field_nodes']} nodes), "
                      f"{result.timings['initialize']:.1f}s")
     lines.append(f"SDF residual RMS: {m['initial_sdf_rms']:.4g} -> {m['final_sdf_rms']:.4g} "
                  "(fraction of the scene diagonal)")

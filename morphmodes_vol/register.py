@@ -107,7 +107,7 @@ class RegistrationResult:
     def evaluations(self) -> int:
         """Number of source-SDF evaluations on the quadrature, over every start
         (``metrics["starts"]``; the initialization's coarse-grid evaluations are
-        ``metrics["init_evaluations"]``)."""
+        ``metrics["init_evaluations"]``, which sample a precomputed field, not the mesh)."""
         return int(self.metrics.get("evaluations_all_starts", self.history.evaluations))
 
     @property

@@ -6,8 +6,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import morphmodes_vol as mm
-from morphmodes_vol.initialize import (_increment_map, _rodrigues, _Similarity, align,
-                                       candidate_rotations, rotation_angle)
+from morphmodes_vol.initialize import (RigidSourceField, _evaluate, _motion_metric, _rigid_jacobian,
+                                       _rodrigues, _Similarity, align, candidate_rotations,
+                                       rotation_angle)
 from morphmodes_vol.primitives import bend, capsule
 from morphmodes_vol.sdf import Grid, signed_distance
 
@@ -45,15 +46,68 @@ def test_rodrigues_and_rotation_angle_match_scipy():
     assert np.allclose(_rodrigues(np.zeros(3)), np.eye(3))
 
 
-def test_increment_map_is_the_small_similarity_about_the_center():
+def test_motion_metric_is_the_mean_squared_vertex_displacement():
     rng = np.random.default_rng(0)
     c, x = rng.random(3), rng.random((5, 3))
     p = rng.standard_normal(7)
-    T = (_increment_map(c, True) @ p).reshape(3, 4)
     w, t, s = p[:3], p[3:6], p[6]
-    expected = np.cross(w, x - c) + s * (x - c) + t
-    assert np.allclose(x @ T[:, :3].T + T[:, 3], expected)
-    assert _increment_map(c, False).shape == (12, 6)
+    dx = np.cross(w, x - c) + s * (x - c) + t
+    assert np.isclose(p @ _motion_metric(x, c, True) @ p, np.mean(np.sum(dx**2, axis=1)))
+    assert np.isclose(p[:6] @ _motion_metric(x, c, False) @ p[:6],
+                      np.mean(np.sum((dx - s * (x - c)) ** 2, axis=1)))
+
+
+def test_rigid_source_field_is_the_moved_sources_signed_distance():
+    X, F = asymmetric_blob()
+    box = Grid.covering(X.min(0), X.max(0), 40, padding=0.6)
+    field = RigidSourceField.from_mesh(X, F, box)
+    assert field.nodes == box.size
+    S = _Similarity(_rodrigues(np.array([0.3, -0.5, 0.8])), np.array([0.1, 0.0, -0.05]), 1.1)
+    Y = S.apply(X)
+    rng = np.random.default_rng(2)
+    Q = Y.mean(0) + 0.5 * rng.standard_normal((400, 3)) * np.ptp(Y, 0)
+    exact = signed_distance(Y, F, Q)
+    ev = _evaluate(field, S, Q, np.zeros(len(Q)), np.ones(len(Q)))
+    P = (Q - S.t) @ S.R / S.scale  # the points in the source's rest frame
+    hi = box.origin + box.spacing * (np.asarray(box.shape) - 1)
+    near = np.all((P > box.origin + box.spacing) & (P < hi - box.spacing), axis=1)
+    assert near.sum() > 300  # most points are inside the field's box
+    # trilinear error of a distance field is O(h); normals agree where the field is smooth
+    assert np.max(np.abs(ev.value[near] - exact.value[near])) < S.scale * box.spacing
+    cos = np.sum(ev.normal[near] * exact.normal[near], axis=1) / np.linalg.norm(ev.normal[near], axis=1)
+    assert np.median(cos) > 0.99
+    assert np.allclose(ev.residual, ev.value) and np.isclose(ev.energy, ev.value @ ev.value)
+    # outside the box the value grows with the distance to it
+    far = _evaluate(field, _Similarity(np.eye(3), np.zeros(3)), np.array([[50.0, 0, 0]]),
+                    np.zeros(1), np.ones(1))
+    assert far.value[0] > 45.0
+
+
+@pytest.mark.parametrize("similarity", [False, True])
+def test_rigid_jacobian_matches_finite_differences(similarity):
+    # a linear field f_0(x) = a.x + b: trilinear interpolation is exact, so is the Jacobian
+    grid = Grid.covering([-3.0] * 3, [3.0] * 3, 7)
+    a, b = np.array([0.3, -0.7, 0.5]), 0.2
+    vals = grid.points() @ a + b
+    values = np.concatenate([vals[:, None], np.broadcast_to(a, (grid.size, 3))], axis=1)
+    field = RigidSourceField(grid, values.reshape(*grid.shape, 4))
+    rng = np.random.default_rng(3)
+    Q = rng.uniform(-1, 1, (20, 3))
+    g = rng.standard_normal(20)
+    w8 = np.ones(20)
+    S = _Similarity(_rodrigues(np.array([0.2, 0.1, -0.3])), np.array([0.1, 0.2, 0.0]), 1.2)
+    c = np.array([0.1, -0.2, 0.3])
+    ev = _evaluate(field, S, Q, g, w8)
+    J = _rigid_jacobian(ev, Q, c, similarity)
+    assert J.shape == (20, 7 if similarity else 6)
+    eps = 1e-6
+    for k in range(J.shape[1]):
+        p = np.zeros(7)
+        p[k] = eps
+        plus = _evaluate(field, S.compose(p[:3], p[3:6], p[6], c), Q, g, w8).residual
+        p[k] = -eps
+        minus = _evaluate(field, S.compose(p[:3], p[3:6], p[6], c), Q, g, w8).residual
+        assert np.allclose((plus - minus) / (2 * eps), J[:, k], atol=1e-6)
 
 
 def test_similarity_compose_applies_the_increment_exactly():

@@ -84,14 +84,14 @@ def trilinear_sample(values: np.ndarray, grid: Grid, points: np.ndarray) -> np.n
 
     Parameters
     ----------
-    values : (nx, ny, nz) float
-        Values at the nodes of ``grid``.
+    values : (nx, ny, nz) or (nx, ny, nz, c) float
+        Values at the nodes of ``grid``, optionally with ``c`` channels each.
     grid : Grid
     points : (k, 3) float
 
     Returns
     -------
-    (k,) float64
+    (k,) or (k, c) float64
 
     Examples
     --------
@@ -99,10 +99,14 @@ def trilinear_sample(values: np.ndarray, grid: Grid, points: np.ndarray) -> np.n
     >>> vals = g.points() @ np.array([1.0, 2.0, 3.0])          # a linear field
     >>> trilinear_sample(vals.reshape(g.shape), g, np.array([[0.5, 0.25, 0.75]]))
     array([3.25])
+    >>> both = np.stack([vals, 2 * vals], axis=1).reshape(*g.shape, 2)  # two channels at once
+    >>> trilinear_sample(both, g, np.array([[0.5, 0.25, 0.75]]))
+    array([[3.25, 6.5 ]])
     """
     values = np.asarray(values, dtype=np.float64)
-    if values.shape != tuple(grid.shape):
-        raise OptionError(f"values must have the grid's shape {grid.shape}, got {values.shape}")
+    if values.shape[:3] != tuple(grid.shape) or values.ndim not in (3, 4):
+        raise OptionError(f"values must have the grid's shape {grid.shape} (and optionally a "
+                          f"channel axis), got {values.shape}")
     P = (np.asarray(points, dtype=np.float64) - grid.origin) / grid.spacing
     upper = np.asarray(grid.shape) - 1
     P = np.clip(P, 0.0, upper)
@@ -112,6 +116,8 @@ def trilinear_sample(values: np.ndarray, grid: Grid, points: np.ndarray) -> np.n
     x0, y0, z0 = i0.T
     x1, y1, z1 = i1.T
     tx, ty, tz = t.T
+    if values.ndim == 4:
+        tx, ty, tz = tx[:, None], ty[:, None], tz[:, None]
     c00 = values[x0, y0, z0] * (1 - tx) + values[x1, y0, z0] * tx
     c01 = values[x0, y0, z1] * (1 - tx) + values[x1, y0, z1] * tx
     c10 = values[x0, y1, z0] * (1 - tx) + values[x1, y1, z0] * tx
