@@ -154,10 +154,11 @@ class RegistrationOptions:
     select_energy_factor : float
         See ``init_keep_rest``; at least 1.
     init_lm_iterations_per_stage : int
-        ``lm_iterations_per_stage`` of the run from the aligned start. The run from the
-        rest pose keeps ``lm_iterations_per_stage`` (3). On the 18 lion and cat poses the
-        kept result's mean ground-truth error was 0.096 with 3 (rest) and 10 (aligned),
-        0.117 with 3 for both runs and 0.107 with 10 for both (docs/method.md).
+        ``lm_iterations_per_stage`` of the run from the aligned start (the rest start keeps
+        ``lm_iterations_per_stage``). 3, as for the rest start: on the 18 lion and cat poses
+        the kept result's mean ground-truth error was 0.100 with 3, 0.103 with 5 and 0.109
+        with 10, and from starts turned by 2 degrees about random axes lion-05 ended at
+        0.08-0.13 with 3 but at 0.09-0.53 with 10 (docs/method.md).
     """
 
     grid: int = 64
@@ -197,7 +198,7 @@ class RegistrationOptions:
     init_switch: float = 0.6
     init_keep_rest: bool = True
     select_energy_factor: float = 10.0
-    init_lm_iterations_per_stage: int = 10
+    init_lm_iterations_per_stage: int = 3
 
     @classmethod
     def paper_faithful(cls) -> "RegistrationOptions":
