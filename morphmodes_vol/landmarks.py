@@ -275,6 +275,11 @@ class LandmarkEnergy:
     def refresh(self, X: np.ndarray, force: bool = False) -> bool:
         return self.inner.refresh(X, force)
 
+    def start_stage(self, m: int) -> None:
+        hook = getattr(self.inner, "start_stage", None)
+        if hook is not None:
+            hook(m)
+
     def landmark_term(self, X: np.ndarray) -> tuple[float, np.ndarray]:
         """``E_lm`` and its vertex gradient ``(n, 3)`` at ``X (n, 3)``."""
         d = X[self.indices] - self.points

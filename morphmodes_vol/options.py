@@ -56,6 +56,11 @@ class RegistrationOptions:
         Vertex motion, in grid spacings, after which the band is recomputed.
     padding : float
         Margin added on every side of the union bounding box, as a fraction of its diagonal.
+    coarse_modes : int
+        A grid that refines across stages: the first ``coarse_modes`` stages of Algorithm 1
+        evaluate Eq. (3) on every other node of the quadrature grid (spacing ``2h``, the same
+        ``quadrature`` kind), the later ones on the full resolution. ``0`` (default): one grid
+        throughout.
     modes : int
         ``m_max``, the largest number of skinning eigenmodes (12 degrees of freedom each).
     initial_modes : int
@@ -168,6 +173,7 @@ class RegistrationOptions:
     block_factor: int = 4
     band_margin_cells: float = 4.0
     padding: float = 0.1
+    coarse_modes: int = 0
     modes: int = 20
     initial_modes: int = 1
     stall_start: float = 1.4e-3
@@ -268,6 +274,7 @@ class RegistrationOptions:
              "an integer in [1, 29]")
         need(_is_real(self.init_switch) and 0 <= self.init_switch <= 1, "init_switch", "a float in [0, 1]")
         need(isinstance(self.init_keep_rest, bool), "init_keep_rest", "True or False")
+        need(_is_int(self.coarse_modes) and self.coarse_modes >= 0, "coarse_modes", "a non-negative integer")
         need(_is_int(self.init_lm_iterations_per_stage) and self.init_lm_iterations_per_stage >= 1,
              "init_lm_iterations_per_stage", "a positive integer")
         need(_is_real(self.select_energy_factor) and self.select_energy_factor >= 1,

@@ -34,7 +34,7 @@ from .energy import EnergyEvaluation, SDFEnergy
 from .sdf.grid import Grid
 from .sdf.source import SignMethod, closest_points
 
-__all__ = ["GridBlocks", "BandEnergy"]
+__all__ = ["GridBlocks", "BandEnergy", "CoarseToFine", "every_other_node"]
 
 log = logging.getLogger(__name__)
 
@@ -173,3 +173,68 @@ class BandEnergy:
         self.seconds += self._inner.seconds
         self._inner.seconds = 0.0
         return ev
+
+
+def every_other_node(grid: Grid) -> tuple[Grid, np.ndarray]:
+    """The grid of every second node of ``grid`` along each axis (spacing ``2h``) and the
+    flat indices ``(M,)`` of its nodes among ``grid``'s, so node values subsample exactly.
+
+    Examples
+    --------
+    >>> g = Grid(origin=np.zeros(3), spacing=0.5, shape=(5, 4, 3))
+    >>> c, idx = every_other_node(g)
+    >>> c.shape, c.spacing, bool(np.allclose(c.points(), g.points()[idx]))
+    ((3, 2, 2), 1.0, True)
+    """
+    sub = [np.arange(0, n, 2) for n in grid.shape]
+    I, J, K = np.meshgrid(*sub, indexing="ij")
+    idx = np.ravel_multi_index((I.ravel(), J.ravel(), K.ravel()), grid.shape)
+    coarse = Grid(origin=np.asarray(grid.origin, dtype=np.float64), spacing=2.0 * grid.spacing,
+                  shape=tuple(len(a) for a in sub))
+    return coarse, idx
+
+
+class CoarseToFine:
+    """Eq. (3) on a coarse quadrature while at most ``modes`` modes are active, then on the
+    fine one: a grid that refines across the stages of Algorithm 1.
+
+    The adaptive loop calls :meth:`start_stage` at every stage; at the switch the next
+    :meth:`refresh` reports a new quadrature, so the loop re-evaluates the current state on
+    the fine one before it compares energies (as after a band refresh).
+
+    Parameters
+    ----------
+    coarse, fine : SDFEnergy or BandEnergy
+        Evaluators of Eq. (3) on the two quadratures (same source faces).
+    modes : int
+        Last stage (number of active modes) evaluated on ``coarse``.
+    """
+
+    def __init__(self, coarse, fine, modes: int):
+        self.coarse, self.fine, self.modes = coarse, fine, int(modes)
+        self.current = coarse if self.modes > 0 else fine
+        self._switched = False
+
+    F = property(lambda self: self.current.F)
+    weights = property(lambda self: self.current.weights)
+    Q = property(lambda self: self.current.Q)
+    evaluations = property(lambda self: self.coarse.evaluations + self.fine.evaluations)
+    seconds = property(lambda self: self.coarse.seconds + self.fine.seconds)
+
+    def start_stage(self, m: int) -> None:
+        """Stage ``m`` (active modes) begins: switch to the fine quadrature after ``modes``."""
+        if m > self.modes and self.current is self.coarse:
+            self.current = self.fine
+            self._switched = True
+            log.info("coarse-to-fine: stage %d onwards on the fine quadrature", m)
+
+    def refresh(self, X: np.ndarray, force: bool = False) -> bool:
+        """As :meth:`BandEnergy.refresh`; also ``True`` once right after the switch."""
+        if self._switched:
+            self._switched = False
+            self.current.refresh(X, force=True)
+            return True
+        return self.current.refresh(X, force)
+
+    def evaluate(self, X: np.ndarray) -> EnergyEvaluation:
+        return self.current.evaluate(X)

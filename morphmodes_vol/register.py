@@ -24,7 +24,7 @@ from .mesh import MeshLike, Normalization, as_mesh, bbox_diagonal, joint_normali
 from .limits import check_memory, estimate_memory
 from .metrics import edge_strain, ground_truth_error, shape_metrics
 from .options import RegistrationOptions
-from .quadrature import BandEnergy
+from .quadrature import BandEnergy, CoarseToFine, every_other_node
 from .repair import sdf_faces
 from .optimize import OptimizationHistory, ProgressEvent, optimize_adaptive
 from .sdf import Grid, TargetSDF, build_target_sdf, closest_points, is_target_sdf_path, load_target_sdf
@@ -242,20 +242,32 @@ class Registration:
         """A fresh Eq. (3) evaluator for this pair (its evaluation counter starts at 0), on
         the quadrature ``options.quadrature`` selects."""
         o = self.options
-        if o.quadrature == "band":
-            h = self.quadrature.spacing
-            sdf = BandEnergy(
-                self.source_sdf_faces, self.quadrature, self.g, self.sample_target,
-                band=o.band_cells * h, factor=o.block_factor, margin=o.band_margin_cells * h,
-                sign=o.source_sign, samples=o.occupancy_samples, points=self.Q,
-            )
-        else:
-            sdf = self.full_energy()
+        sdf = self._quadrature_energy(self.quadrature, self.g, self.Q)
+        if o.coarse_modes > 0:
+            # a grid refining across stages: every other node (spacing 2h) for the first
+            # coarse_modes stages; its target values are the fine grid's, subsampled
+            grid, idx = every_other_node(self.quadrature)
+            coarse = self._quadrature_energy(grid, self.g[idx], self.Q[idx])
+            sdf = CoarseToFine(coarse, sdf, o.coarse_modes)
         if self.landmarks is None or o.landmark_weight == 0:
             return sdf
         # E_sdf + E_lm (morphmodes_vol.landmarks), the weight relative to the box's volume
         return LandmarkEnergy(sdf, self.landmarks.indices, self.normalization.apply(self.landmarks.points),
                               o.landmark_weight, self.quadrature.cell_volume * self.Q.shape[0])
+
+    def _quadrature_energy(self, grid: Grid, g: np.ndarray, Q: np.ndarray) -> SDFEnergy | BandEnergy:
+        """Eq. (3) on the nodes ``Q (N, 3)`` of ``grid`` (target values ``g (N,)``), as
+        ``options.quadrature`` selects; band widths are in cells of ``grid``."""
+        o = self.options
+        if o.quadrature == "band":
+            h = grid.spacing
+            return BandEnergy(
+                self.source_sdf_faces, grid, g, self.sample_target,
+                band=o.band_cells * h, factor=o.block_factor, margin=o.band_margin_cells * h,
+                sign=o.source_sign, samples=o.occupancy_samples, points=Q,
+            )
+        return SDFEnergy(self.source_sdf_faces, Q, g, grid.cell_volume, sign=o.source_sign,
+                         samples=o.occupancy_samples)
 
     def sample_target(self, points: np.ndarray) -> np.ndarray:
         """Target SDF at ``points (k, 3)`` of the pair's normalized frame, ``(k,)``."""
