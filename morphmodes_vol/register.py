@@ -255,11 +255,13 @@ class Registration:
         return LandmarkEnergy(sdf, self.landmarks.indices, self.normalization.apply(self.landmarks.points),
                               o.landmark_weight, self.quadrature.cell_volume * self.Q.shape[0])
 
-    def _quadrature_energy(self, grid: Grid, g: np.ndarray, Q: np.ndarray) -> SDFEnergy | BandEnergy:
-        """Eq. (3) on the nodes ``Q (N, 3)`` of ``grid`` (target values ``g (N,)``), as
-        ``options.quadrature`` selects; band widths are in cells of ``grid``."""
+    def _quadrature_energy(self, grid: Grid, g: np.ndarray, Q: np.ndarray,
+                           kind: str | None = None) -> SDFEnergy | BandEnergy:
+        """Eq. (3) on the nodes ``Q (N, 3)`` of ``grid`` (target values ``g (N,)``), on the
+        quadrature ``kind`` (default ``options.quadrature``); band widths are in cells of
+        ``grid``."""
         o = self.options
-        if o.quadrature == "band":
+        if (kind or o.quadrature) == "band":
             h = grid.spacing
             return BandEnergy(
                 self.source_sdf_faces, grid, g, self.sample_target,
@@ -293,21 +295,14 @@ class Registration:
 
     def _comparable_energy(self, out) -> float:
         """Eq. (3) of a run's result on the full grid (a band quadrature differs per run)."""
-        if self.options.quadrature == "full":
+        if self.options.quadrature == "full" and self.options.coarse_modes == 0:
             return float(out.final.energy)
         ev = self.full_energy().evaluate(out.vertices)
         return float(ev.energy)
 
     def full_energy(self) -> SDFEnergy:
         """Eq. (3) on every node of the quadrature grid (the paper's quadrature)."""
-        return SDFEnergy(
-            self.source_sdf_faces,
-            self.Q,
-            self.g,
-            self.quadrature.cell_volume,
-            sign=self.options.source_sign,
-            samples=self.options.occupancy_samples,
-        )
+        return self._quadrature_energy(self.quadrature, self.g, self.Q, "full")
 
     def run(
         self,
