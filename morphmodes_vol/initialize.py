@@ -15,8 +15,8 @@ Algorithm 1:
 2. *Source field.* The source only moves rigidly (or by a similarity) here, so its signed
    distance is sampled once, by one closest-point query, on a grid of the coarse spacing
    in its rest frame (:class:`RigidSourceField`); Eq. (3) for any map ``x -> s R x + t``
-   is then ``f(q) = s f_0(R^T (q - t) / s)``, trilinear in the samples. On the lion poses
-   this made the alignment 3-10x faster at the same result (docs/method.md).
+   is then ``f(q) = s f_0(R^T (q - t) / s)``, trilinear in the samples. On the lion and
+   cat poses this made the alignment 5-20x faster at the same result (docs/method.md).
 3. *Screening.* Eq. (3) on a coarse grid (``init_grid`` nodes along the longest side) at
    every candidate and at the rest pose; the unrotated start (centroids matched) and the
    ``init_candidates - 1`` lowest others go on.
@@ -339,6 +339,9 @@ def _refine(field: RigidSourceField, Q: np.ndarray, g: np.ndarray, weight: np.nd
     return S, ev, spent
 
 
+_FIELD_MAX_RESOLUTION = 160  # nodes per side: at most 4.1M nodes, 131 MB with the gradient
+
+
 def _source_field(X0: np.ndarray, F: np.ndarray, Q: np.ndarray, spacing: float, cs: np.ndarray,
                   ct: np.ndarray, scale: float, sign: str) -> RigidSourceField:
     """The source's field on a grid of the coarse spacing whose box holds every point the
@@ -349,6 +352,11 @@ def _source_field(X0: np.ndarray, F: np.ndarray, Q: np.ndarray, spacing: float, 
     lo = np.minimum(Q.min(axis=0), cs - radius)
     hi = np.maximum(Q.max(axis=0), cs + radius)
     resolution = int(np.ceil(float((hi - lo).max()) / spacing)) + 1
+    if resolution > _FIELD_MAX_RESOLUTION:  # a fine init_grid: bound the field's memory
+        log.info("source field for the alignment: %d nodes per side capped at %d (spacing %.3g "
+                 "instead of the coarse grid's %.3g)", resolution, _FIELD_MAX_RESOLUTION,
+                 float((hi - lo).max()) / (_FIELD_MAX_RESOLUTION - 1), spacing)
+        resolution = _FIELD_MAX_RESOLUTION
     grid = Grid.covering(lo, hi, resolution)
     return RigidSourceField.from_mesh(X0, F, grid, sign=sign)
 

@@ -242,3 +242,15 @@ def test_two_starts_are_run_and_reported():
     assert chosen["edge_strain"] == r.metrics["edge_strain"]
     one = mm.register((X, F), (Y, F), opts.replace(init_keep_rest=False))
     assert [s["start"] for s in one.metrics["starts"]] == ["aligned"]
+
+
+def test_source_field_resolution_is_capped_and_still_covers_the_box(monkeypatch):
+    import morphmodes_vol.initialize as init
+
+    X, F = asymmetric_blob()
+    Q = np.random.default_rng(4).uniform(-1, 1, (50, 3))
+    monkeypatch.setattr(init, "_FIELD_MAX_RESOLUTION", 20)
+    field = init._source_field(X, F, Q, 0.01, X.mean(0), np.zeros(3), 1.0, "raycast")
+    assert max(field.grid.shape) == 20
+    hi = field.grid.origin + field.grid.spacing * (np.asarray(field.grid.shape) - 1)
+    assert np.all(field.grid.origin <= Q.min(0)) and np.all(hi >= Q.max(0))
