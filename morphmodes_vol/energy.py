@@ -126,6 +126,10 @@ class SDFEnergy:
         """Fixed quadrature: nothing to refresh (see :class:`morphmodes_vol.quadrature.BandEnergy`)."""
         return False
 
+    def start_stage(self, m: int) -> None:
+        """One quadrature for every stage: nothing to do (see
+        :class:`morphmodes_vol.quadrature.CoarseToFine`)."""
+
     def evaluate(self, X: np.ndarray) -> EnergyEvaluation:
         """Energy and vertex gradient at vertices ``X (n, 3)``."""
         t0 = time.perf_counter()

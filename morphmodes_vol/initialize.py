@@ -292,9 +292,8 @@ def _motion_metric(X: np.ndarray, c: np.ndarray, similarity: bool) -> np.ndarray
     d = X - c
     k = 7 if similarity else 6
     G = np.zeros((X.shape[0], 3, k))
-    G[:, 0, 1], G[:, 0, 2] = d[:, 2], -d[:, 1]   # w x d, column by column
-    G[:, 1, 0], G[:, 1, 2] = -d[:, 2], d[:, 0]
-    G[:, 2, 0], G[:, 2, 1] = d[:, 1], -d[:, 0]
+    for i, e in enumerate(np.eye(3)):
+        G[:, :, i] = np.cross(e, d)  # the displacement of w = e_i: e_i x d
     G[:, :, 3:6] = np.eye(3)
     if similarity:
         G[:, :, 6] = d
@@ -310,11 +309,12 @@ def _refine(field: RigidSourceField, Q: np.ndarray, g: np.ndarray, weight: np.nd
     """
     S, nu, spent = start, 2.0, 0
     for _ in range(iterations):
-        c = S.apply(X0).mean(axis=0)
+        X = S.apply(X0)
+        c = X.mean(axis=0)
         J = _rigid_jacobian(ev, Q, c, similarity)
         WJ = weight[:, None] * J
         model = NormalEquations(A=J.T @ WJ, g=WJ.T @ ev.residual)
-        metric = _motion_metric(S.apply(X0), c, similarity)
+        metric = _motion_metric(X, c, similarity)
         accepted = False
         for _ in range(8):
             p = lm_solve(model, metric, damping)

@@ -231,8 +231,8 @@ class LandmarkEvaluation(EnergyEvaluation):
 
 class LandmarkEnergy:
     """``E_sdf + E_lm`` with the interface of :class:`~morphmodes_vol.energy.SDFEnergy`
-    (``evaluate``, ``refresh``, ``F``, ``weights``, ``evaluations``, ``seconds``), so the
-    optimizers of :mod:`morphmodes_vol.optimize` see no difference.
+    (``evaluate``, ``refresh``, ``start_stage``, ``F``, ``weights``, ``evaluations``,
+    ``seconds``), so the optimizers of :mod:`morphmodes_vol.optimize` see no difference.
 
     Parameters
     ----------
@@ -276,9 +276,7 @@ class LandmarkEnergy:
         return self.inner.refresh(X, force)
 
     def start_stage(self, m: int) -> None:
-        hook = getattr(self.inner, "start_stage", None)
-        if hook is not None:
-            hook(m)
+        self.inner.start_stage(m)
 
     def landmark_term(self, X: np.ndarray) -> tuple[float, np.ndarray]:
         """``E_lm`` and its vertex gradient ``(n, 3)`` at ``X (n, 3)``."""

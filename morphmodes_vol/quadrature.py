@@ -164,6 +164,9 @@ class BandEnergy:
                   int(fine.sum()), far.size, self.points.shape[0])
         return True
 
+    def start_stage(self, m: int) -> None:
+        """One grid for every stage (the band follows the source through :meth:`refresh`)."""
+
     def evaluate(self, X: np.ndarray) -> EnergyEvaluation:
         """Energy and vertex gradient at ``X (n, 3)`` on the current band quadrature."""
         if self._inner is None:

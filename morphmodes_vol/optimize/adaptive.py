@@ -390,9 +390,7 @@ def _optimize_adaptive(
             T = np.concatenate([T, np.zeros((1, 3, 4))])  # z <- [z; 0_12]
         eps = options.stall_threshold(stage)
         history.stage_starts.append(len(history.step_rms))
-        stage_hook = getattr(energy, "start_stage", None)  # e.g. a coarse-to-fine quadrature
-        if stage_hook is not None:
-            stage_hook(m)
+        energy.start_stage(m)  # e.g. a coarse-to-fine quadrature switches grids here
         stepper.start_stage(m)
         end: StageEnd = "iteration_cap"
         report(m, 0, float("nan"), eps)
