@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _data import data_dir, parse_overrides  # noqa: E402
+from _data import parse_overrides  # noqa: E402
+from _exp import mesh_path  # noqa: E402
 
 import morphmodes_vol as mm  # noqa: E402
 
@@ -56,13 +57,8 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--set", nargs="*", default=[], metavar="OPTION=VALUE")
     args = ap.parse_args()
-    root = data_dir()
-    if root is None:
-        print("the shared data (../shared/data or $MORPHMODES_DATA) is needed", file=sys.stderr)
-        return 2
-    animal, _ = args.pose.split("-")
-    source = root / f"{animal}-poses" / f"{animal}-reference.obj"
-    target = root / f"{animal}-poses" / f"{args.pose}.obj"
+    source = mesh_path(f"{args.pose.split('-')[0]}-reference")  # exits without the shared data
+    target = mesh_path(args.pose)
     options = mm.RegistrationOptions(**{"init_keep_rest": False, **parse_overrides(args.set)})
     if options.initialization == "none":
         print("--set initialization=none has no start to turn", file=sys.stderr)
