@@ -73,6 +73,8 @@ def _options_from_args(args) -> RegistrationOptions:
             changes["quadrature"] = "band" if args.optimizer == "lm" else "full"
         if args.optimizer == "paper" and args.init is None:  # the paper starts at the rest pose
             changes["initialization"] = "none"
+        if args.optimizer == "paper" and getattr(args, "isometry_weight", None) is None:  # and has Eq. (3) alone
+            changes["isometry_weight"] = 0.0
     if args.quadrature is not None:
         changes["quadrature"] = args.quadrature
     if args.memory_limit is not None:
@@ -85,6 +87,8 @@ def _options_from_args(args) -> RegistrationOptions:
         changes["landmark_weight"] = args.landmark_weight
     if args.init is not None:
         changes["initialization"] = args.init
+    if getattr(args, "isometry_weight", None) is not None:
+        changes["isometry_weight"] = args.isometry_weight
     return RegistrationOptions().replace(**changes)
 
 
@@ -112,6 +116,10 @@ def _add_common(p: argparse.ArgumentParser, default_grid: int, default_modes: in
                    help="global alignment before the optimization: a rigid motion or similarity "
                         "minimizing the SDF energy from several orientations (default "
                         f"{d.initialization}; docs/method.md)")
+    p.add_argument("--isometry-weight", type=float, default=None, metavar="W",
+                   help=f"weight of the isometry prior, a penalty on uneven edge stretch added to "
+                        f"the SDF energy (0: the SDF energy alone, as the paper; default "
+                        f"{d.isometry_weight:g}, 0 with --optimizer paper; docs/method.md)")
     p.add_argument("--seed", type=int, default=d.seed, help="seed of the eigensolver's start vector")
     p.add_argument("--memory-limit", type=float, default=None, metavar="GB",
                    help=f"refuse runs estimated to need more memory (default {d.memory_limit_gb:g}; 0: no limit)")

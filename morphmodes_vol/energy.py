@@ -53,6 +53,10 @@ class EnergyEvaluation:
         :mod:`morphmodes_vol.optimize.gauss_newton`).
     volume : float, optional
         Sum of the quadrature weights (the volume the points stand for).
+    extra_energy : float
+        The part of ``energy`` that is not Eq. (3): terms added to it (landmarks,
+        :mod:`morphmodes_vol.landmarks`; the isometry prior, :mod:`morphmodes_vol.isometry`).
+        ``0`` for Eq. (3) alone.
     """
 
     energy: float
@@ -63,15 +67,17 @@ class EnergyEvaluation:
     normal: np.ndarray | None = None
 
     volume: float | None = None
+    extra_energy: float = 0.0
 
     @property
     def rms_residual(self) -> float:
         """Root mean square of ``f - g`` over the quadrature's volume,
-        ``sqrt(E / sum_i w_i)`` (normalized length units): on a regular grid the plain RMS
-        over the nodes, and comparable across quadratures of the same box."""
+        ``sqrt(E / sum_i w_i)`` (normalized length units, ``E`` without ``extra_energy``):
+        on a regular grid the plain RMS over the nodes, and comparable across quadratures
+        of the same box."""
         if self.volume is None:
             return float(np.sqrt(np.mean(self.residual**2)))
-        return float(np.sqrt(self.energy / self.volume))
+        return float(np.sqrt(max(self.energy - self.extra_energy, 0.0) / self.volume))
 
 
 class SDFEnergy:

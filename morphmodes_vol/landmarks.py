@@ -219,14 +219,10 @@ def landmark_rms(vertices: np.ndarray, landmarks: Landmarks) -> float:
 class LandmarkEvaluation(EnergyEvaluation):
     """An :class:`~morphmodes_vol.energy.EnergyEvaluation` of ``E_sdf + E_lm``:
     ``energy`` and ``gradient`` are the totals, ``residual`` and the correspondences are the
-    SDF term's, ``landmark_energy`` is ``E_lm`` (so ``rms_residual`` stays the SDF's)."""
+    SDF term's, ``landmark_energy`` is ``E_lm`` (counted in ``extra_energy``, so
+    ``rms_residual`` stays the SDF's)."""
 
     landmark_energy: float = 0.0
-
-    @property
-    def rms_residual(self) -> float:
-        sdf = dataclasses.replace(self, energy=self.energy - self.landmark_energy, landmark_energy=0.0)
-        return EnergyEvaluation.rms_residual.fget(sdf)
 
 
 class LandmarkEnergy:
@@ -290,17 +286,20 @@ class LandmarkEnergy:
         ev = self.inner.evaluate(X)
         e_lm, g_lm = self.landmark_term(X)
         fields = {f.name: getattr(ev, f.name) for f in dataclasses.fields(EnergyEvaluation)}
-        fields.update(energy=ev.energy + e_lm, gradient=ev.gradient + g_lm)
+        fields.update(energy=ev.energy + e_lm, gradient=ev.gradient + g_lm,
+                      extra_energy=ev.extra_energy + e_lm)
         return LandmarkEvaluation(**fields, landmark_energy=e_lm)
 
-    def normal_matrix(self, basis, m: int) -> np.ndarray:
+    def normal_matrix(self, basis, m: int, X: np.ndarray | None = None) -> np.ndarray:
         """The term's block of the Gauss-Newton matrix in the first ``m`` modes, in the T
         layout of :class:`~morphmodes_vol.optimize.gauss_newton.NormalEquations`:
         ``coefficient * C_L^T C_L`` on each coordinate block, ``(12m, 12m)`` (``C_L`` the
         landmark rows of the skinning matrix; half the term's Hessian, as ``A`` is half
-        the Gauss-Newton Hessian of Eq. 3)."""
+        the Gauss-Newton Hessian of Eq. 3), plus the inner energy's block at the vertices
+        ``X (n, 3)`` when it has one (the isometry prior's)."""
         if m not in self._normal:
             CL = _skinning_matrix(basis, m)[self.indices]
             block = self.coefficient * (CL.T @ CL)
             self._normal[m] = _assemble({(a, a): block for a in range(3)}, m)
-        return self._normal[m]
+        inner = getattr(self.inner, "normal_matrix", None)
+        return self._normal[m] if inner is None else self._normal[m] + inner(basis, m, X)

@@ -19,6 +19,7 @@ from .eigenbasis import LBSBasis, mesh_skinning_weights, to_paper_z
 from .energy import SDFEnergy
 from .errors import OptionError
 from .initialize import InitialAlignment, align
+from .isometry import IsometryEnergy, log_stretch_variance
 from .landmarks import LandmarkEnergy, Landmarks, as_landmarks, landmark_rms
 from .mesh import MeshLike, Normalization, as_mesh, bbox_diagonal, joint_normalization
 from .limits import check_memory, estimate_memory
@@ -239,8 +240,9 @@ class Registration:
                  self.timings["target_sdf"])
 
     def energy(self) -> SDFEnergy | BandEnergy:
-        """A fresh Eq. (3) evaluator for this pair (its evaluation counter starts at 0), on
-        the quadrature ``options.quadrature`` selects."""
+        """A fresh evaluator of the objective for this pair (its evaluation counter starts
+        at 0): Eq. (3) on the quadrature ``options.quadrature`` selects, plus the isometry
+        prior and the landmarks when on."""
         o = self.options
         sdf = self._quadrature_energy(self.quadrature, self.g, self.Q)
         if o.coarse_modes > 0:
@@ -249,11 +251,21 @@ class Registration:
             grid, idx = every_other_node(self.quadrature)
             coarse = self._quadrature_energy(grid, self.g[idx], self.Q[idx])
             sdf = CoarseToFine(coarse, sdf, o.coarse_modes)
+        return self._with_terms(sdf)
+
+    def _with_terms(self, sdf):
+        """``sdf`` (Eq. 3 on some quadrature) plus the terms the options and inputs add: the
+        isometry prior (:mod:`morphmodes_vol.isometry`) and the landmarks
+        (:mod:`morphmodes_vol.landmarks`), both weighted relative to the box's volume."""
+        o = self.options
+        volume = self.quadrature.cell_volume * self.Q.shape[0]
+        if o.isometry_weight > 0:
+            sdf = IsometryEnergy(sdf, self.X0, self.source_sdf_faces, o.isometry_weight, volume,
+                                 o.isometry_tolerance)
         if self.landmarks is None or o.landmark_weight == 0:
             return sdf
-        # E_sdf + E_lm (morphmodes_vol.landmarks), the weight relative to the box's volume
         return LandmarkEnergy(sdf, self.landmarks.indices, self.normalization.apply(self.landmarks.points),
-                              o.landmark_weight, self.quadrature.cell_volume * self.Q.shape[0])
+                              o.landmark_weight, volume)
 
     def _quadrature_energy(self, grid: Grid, g: np.ndarray, Q: np.ndarray,
                            kind: str | None = None) -> SDFEnergy | BandEnergy:
@@ -294,10 +306,12 @@ class Registration:
                      sign=o.source_sign)
 
     def _comparable_energy(self, out) -> float:
-        """Eq. (3) of a run's result on the full grid (a band quadrature differs per run)."""
-        if self.options.quadrature == "full" and self.options.coarse_modes == 0:
+        """The objective of a run's result (Eq. 3 plus the isometry prior and landmarks
+        when on) with Eq. (3) on the full grid: a band quadrature differs per run."""
+        o = self.options
+        if o.quadrature == "full" and o.coarse_modes == 0:
             return float(out.final.energy)
-        ev = self.full_energy().evaluate(out.vertices)
+        ev = self._with_terms(self.full_energy()).evaluate(out.vertices)
         return float(ev.energy)
 
     def full_energy(self) -> SDFEnergy:
@@ -440,14 +454,17 @@ class _StartRun:
 
 
 def _select_start(runs: list[_StartRun], factor: float) -> _StartRun:
-    """The least distorted run (lowest edge strain) among those whose energy is within
-    ``factor`` of the lowest: the same body in another pose is close to an isometry, and a
-    registration with wrong correspondences fits the SDF as well but stretches the surface
-    more (docs/method.md)."""
+    """The run with the lowest objective (``factor == 1``), or the least distorted run
+    (lowest edge strain) among those whose objective is within ``factor`` of the lowest: the
+    same body in another pose is close to an isometry, and a registration with wrong
+    correspondences may fit the SDF as well but stretch the surface more (docs/method.md).
+    With the isometry prior on, the objective already weighs that stretch."""
     finite = [r for r in runs if np.isfinite(r.energy)]
     if not finite:
         return runs[0]
     lowest = min(r.energy for r in finite)
+    if factor <= 1:
+        return min(finite, key=lambda r: r.energy)
     return min((r for r in finite if r.energy <= factor * lowest), key=lambda r: r.strain)
 
 

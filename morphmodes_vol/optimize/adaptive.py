@@ -249,12 +249,12 @@ class _LevenbergMarquardtStepper:
         m = T.shape[0]
         n = basis.X0.shape[0]
         model = subspace_normal_equations(current, basis, m, self.energy.F, self.energy.weights)
-        extra = getattr(self.energy, "normal_matrix", None)  # e.g. landmarks' block
+        extra = getattr(self.energy, "normal_matrix", None)  # landmarks', the isometry prior's
         if extra is not None:
-            model = NormalEquations(A=model.A + extra(basis, m), g=model.g)
+            model = NormalEquations(A=model.A + extra(basis, m, basis.deform(T)), g=model.g)
         for _ in range(options.max_backtracks):
             d = lm_solve(model, self.metric, self.damping)
-            rms = float(np.sqrt(d @ self.metric @ d / n))
+            rms = float(np.sqrt(max(d @ self.metric @ d, 0.0) / n))  # >= 0 up to rounding
             if rms > options.lm_max_step:  # hard trust region on the vertex motion
                 d *= options.lm_max_step / rms
                 rms = options.lm_max_step

@@ -1,0 +1,224 @@
+"""Optional isometry prior: a penalty on the uneven stretch of the source's edges, added to Eq. (3).
+
+The paper's energy (Eq. 3) only asks the deformed source's SDF to match the target's; the
+skinning subspace is its only regularizer. A body in another pose is close to an isometry of
+itself, and registrations that fit the SDF with wrong correspondences stretch the surface
+unevenly. This term penalizes that, without fixing the overall size:
+
+    rho_e = log(l_e / L_e),   r_e = rho_e - sum_k a_k rho_k,
+    h(r) = sign(r) max(|r| - tol, 0),
+    E_iso(x) = weight * V * sum_e a_e h(r_e)^2,
+
+``l_e = |x_i - x_j|`` the deformed and ``L_e`` the rest length of edge ``e = (i, j)``, ``a_e``
+its share of the rest surface area (a third of the area of each triangle it bounds, so
+``sum_e a_e = 1`` and the sum approximates a surface integral whatever the meshing), ``V``
+the volume of the quadrature box (the sum of Eq. 3's weights) and ``tol`` a tolerance: an
+edge whose log stretch is within ``tol`` of the mean costs nothing, so moderate stretch (a
+limb bending, a shape 20% longer) is left to the SDF term and only the large, uneven
+stretch of wrong correspondences is penalized. With ``tol = 0``, ``E_iso / V`` is ``weight``
+times the area-weighted variance of the log stretch (:func:`log_stretch_variance`);
+``E_sdf / V`` is the mean squared SDF residual over the box (normalized units: the union
+bounding box has diagonal 1). Unit of ``weight``: squared normalized length; with
+``weight = 3e-4`` an excess log stretch ``s`` everywhere costs as much as an SDF residual of
+``0.017 s`` of the diagonal everywhere. The term is zero for any similarity (rigid motion
+and uniform scale) of the rest pose, so the affine first stage may still scale the source.
+
+Gradient: ``dE/drho = 2 weight V P^T (a h)``, ``P = I - 1 a^T`` the removal of the weighted
+mean, and ``drho_e/dx_i = (x_i - x_j) / l_e^2``. Gauss-Newton block (half the Hessian of the
+linearized residuals, as :mod:`morphmodes_vol.optimize.gauss_newton` uses): with ``J =
+drho/dz`` in the active subspace and ``d = a`` on the edges beyond the tolerance (0 elsewhere),
+``weight V J^T P^T diag(d) P J = weight V (J^T diag(d) J - va vd^T - vd va^T + (sum d) va
+va^T)``, ``va = J^T a``, ``vd = J^T d``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import scipy.sparse as sp
+
+from .energy import EnergyEvaluation
+from .optimize.gauss_newton import _assemble, _skinning_matrix
+
+__all__ = ["IsometryEnergy", "edge_area_shares", "log_stretch_variance"]
+
+
+def edge_area_shares(V0, F) -> tuple[np.ndarray, np.ndarray]:
+    """Every edge of the triangles once and its share of their area.
+
+    Parameters
+    ----------
+    V0 : (n, 3) float
+    F : (f, 3) int
+
+    Returns
+    -------
+    edges : (E, 2) int64
+        Vertex pairs, smaller index first, edges of zero length or zero share left out.
+    shares : (E,) float64
+        A third of the area of each triangle the edge bounds, normalized to sum to 1.
+
+    Examples
+    --------
+    >>> V0 = np.array([[0., 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]])
+    >>> edges, shares = edge_area_shares(V0, [[0, 1, 2], [1, 3, 2]])
+    >>> edges.tolist()
+    [[0, 1], [0, 2], [1, 2], [1, 3], [2, 3]]
+    >>> np.round(shares * 6, 6).tolist()   # the diagonal (1, 2) bounds both triangles
+    [1.0, 1.0, 2.0, 1.0, 1.0]
+    """
+    V0 = np.asarray(V0, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    edges, inverse = np.unique(np.sort(e, axis=1), axis=0, return_inverse=True)
+    area = 0.5 * np.linalg.norm(np.cross(V0[F[:, 1]] - V0[F[:, 0]], V0[F[:, 2]] - V0[F[:, 0]]), axis=1)
+    share = np.bincount(inverse.ravel(), weights=np.tile(area / 3.0, 3), minlength=len(edges))
+    length = np.linalg.norm(V0[edges[:, 0]] - V0[edges[:, 1]], axis=1)
+    keep = (length > 0) & (share > 0)
+    if not keep.any():
+        raise ValueError("the mesh has no edge of positive length bounding a triangle of positive area")
+    return edges[keep], share[keep] / share[keep].sum()
+
+
+def log_stretch_variance(V0, V, F) -> float:
+    """Area-weighted variance of ``log(l / L)`` over the edges of ``F`` from ``V0 (n, 3)``
+    to ``V (n, 3)``: ``E_iso / (weight V)`` of the module docstring. 0 for a similarity.
+
+    Examples
+    --------
+    >>> V0 = np.array([[0., 0, 0], [1, 0, 0], [0, 1, 0]]); F = [[0, 1, 2]]
+    >>> log_stretch_variance(V0, 3 * V0 + 1, F) < 1e-30     # a uniform scale and a shift
+    True
+    >>> round(log_stretch_variance(V0, V0 * [2, 1, 1], F), 6)  # var(log 2, 0, log sqrt(5/2))
+    0.082842
+    """
+    edges, shares = edge_area_shares(V0, F)
+    V0, V = np.asarray(V0, dtype=np.float64), np.asarray(V, dtype=np.float64)
+    rest = np.linalg.norm(V0[edges[:, 0]] - V0[edges[:, 1]], axis=1)
+    rho = np.log(np.maximum(np.linalg.norm(V[edges[:, 0]] - V[edges[:, 1]], axis=1), 1e-12 * rest) / rest)
+    r = rho - shares @ rho
+    return float(shares @ (r * r))
+
+
+class IsometryEnergy:
+    """``E_inner + E_iso`` with the interface of :class:`~morphmodes_vol.energy.SDFEnergy`
+    (``evaluate``, ``refresh``, ``start_stage``, ``F``, ``weights``, ``evaluations``,
+    ``seconds``) and a Gauss-Newton block :meth:`normal_matrix` for the Levenberg-Marquardt
+    step.
+
+    Parameters
+    ----------
+    inner : SDFEnergy, BandEnergy or another energy with that interface
+    X0 : (n, 3) float
+        Rest pose (normalized frame).
+    faces : (f, 3) int
+        Source triangles.
+    weight : float
+        ``weight`` of the module docstring (squared normalized length), positive.
+    volume : float
+        Volume of the quadrature box, ``V``.
+    tolerance : float
+        ``tol`` of the module docstring (0: the variance of the log stretch).
+
+    Examples
+    --------
+    >>> from morphmodes_vol.energy import SDFEnergy
+    >>> from morphmodes_vol.primitives import icosphere
+    >>> V, F = icosphere(1)
+    >>> sdf = SDFEnergy(F, np.zeros((1, 3)), np.array([-1.0]), 1.0)
+    >>> E = IsometryEnergy(sdf, V, F, weight=2.0, volume=1.0)
+    >>> float(E.evaluate(2 * V).extra_energy) < 1e-25     # no cost for a uniform scale
+    True
+    >>> round(E.evaluate(V * [1.5, 1, 1]).extra_energy / log_stretch_variance(V, V * [1.5, 1, 1], F), 9)
+    2.0
+    """
+
+    def __init__(self, inner, X0, faces, weight: float, volume: float, tolerance: float = 0.0):
+        self.inner = inner
+        self.tolerance = float(tolerance)
+        X0 = np.asarray(X0, dtype=np.float64)
+        self.edges, self.shares = edge_area_shares(X0, faces)
+        self.rest = np.linalg.norm(X0[self.edges[:, 0]] - X0[self.edges[:, 1]], axis=1)
+        self.n = X0.shape[0]
+        self.coefficient = float(weight) * float(volume)
+        e = len(self.edges)
+        p, q = self.edges[:, 0], self.edges[:, 1]
+        # pattern of D^T diag(w) D (D the edge-vertex incidence): a weighted graph Laplacian
+        self._rows, self._cols = np.r_[p, q, p, q], np.r_[p, q, q, p]
+        self._incidence = sp.csr_matrix((np.r_[np.ones(e), -np.ones(e)], (np.r_[np.arange(e), np.arange(e)],
+                                                                           np.r_[p, q])), shape=(e, self.n))
+        self._C: dict[int, np.ndarray] = {}
+
+    # the optimizer reads these from the energy it is given
+    F = property(lambda self: self.inner.F)
+    weights = property(lambda self: self.inner.weights)
+    evaluations = property(lambda self: self.inner.evaluations)
+    seconds = property(lambda self: self.inner.seconds)
+
+    def refresh(self, X: np.ndarray, force: bool = False) -> bool:
+        return self.inner.refresh(X, force)
+
+    def start_stage(self, m: int) -> None:
+        self.inner.start_stage(m)
+
+    def _stretch(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Penalized residuals ``h(r) (E,)`` (``r`` beyond the tolerance), the mask of edges
+        beyond it ``(E,)`` and ``drho_e/dx_i = (x_i - x_j) / l_e^2`` ``(E, 3)``."""
+        d = X[self.edges[:, 0]] - X[self.edges[:, 1]]
+        length = np.maximum(np.linalg.norm(d, axis=1), 1e-12 * self.rest)
+        rho = np.log(length / self.rest)
+        r = rho - self.shares @ rho
+        active = np.abs(r) > self.tolerance
+        return np.where(active, r - np.sign(r) * self.tolerance, 0.0), active, d / (length**2)[:, None]
+
+    def term(self, X: np.ndarray) -> tuple[float, np.ndarray]:
+        """``E_iso`` and its vertex gradient ``(n, 3)`` at ``X (n, 3)``."""
+        h, _, drho = self._stretch(np.asarray(X, dtype=np.float64))
+        ah = self.shares * h
+        # dE/drho = 2 c P^T (a h), P = I - 1 a^T the removal of the weighted mean
+        g_rho = 2.0 * self.coefficient * (ah - self.shares * ah.sum())
+        g_e = g_rho[:, None] * drho
+        grad = np.zeros((self.n, 3))
+        np.add.at(grad, self.edges[:, 0], g_e)
+        np.add.at(grad, self.edges[:, 1], -g_e)
+        return self.coefficient * float(ah @ h), grad
+
+    def evaluate(self, X: np.ndarray) -> EnergyEvaluation:
+        """``E_inner + E_iso`` and its vertex gradient at ``X (n, 3)``; ``extra_energy``
+        includes ``E_iso`` (so ``rms_residual`` stays the SDF's)."""
+        ev = self.inner.evaluate(X)
+        e, g = self.term(X)
+        return dataclasses.replace(ev, energy=ev.energy + e, gradient=ev.gradient + g,
+                                   extra_energy=ev.extra_energy + e)
+
+    def normal_matrix(self, basis, m: int, X: np.ndarray) -> np.ndarray:
+        """The term's Gauss-Newton block at the vertices ``X (n, 3)`` in the first ``m``
+        modes, ``(12m, 12m)`` in the T layout of
+        :class:`~morphmodes_vol.optimize.gauss_newton.NormalEquations` (module docstring),
+        plus the inner energy's block when it has one."""
+        if m not in self._C:
+            self._C = {m: _skinning_matrix(basis, m)}
+        C = self._C[m]
+        _, active, drho = self._stretch(np.asarray(X, dtype=np.float64))
+        a = self.shares
+        dw = a * active  # diag(d) of the edges beyond the tolerance
+        blocks = {}
+        for i in range(3):
+            for j in range(i, 3):
+                w = dw * drho[:, i] * drho[:, j]
+                H = sp.csr_matrix((np.r_[w, w, -w, -w], (self._rows, self._cols)), shape=(self.n, self.n))
+                blocks[i, j] = C.T @ (H @ C)
+
+        def pulled(weights):  # J^T weights: C^T D^T (weights * drho_i), in the T layout 12 j + 4 i + b
+            v = np.stack([C.T @ (self._incidence.T @ (weights * drho[:, i])) for i in range(3)])
+            return v.reshape(3, m, 4).transpose(1, 0, 2).reshape(-1)
+
+        # J^T P^T diag(d) P J = J^T diag(d) J - va vd^T - vd va^T + (sum d) va va^T
+        va, vd = pulled(a), pulled(dw)
+        A = self.coefficient * (_assemble(blocks, m) - np.outer(va, vd) - np.outer(vd, va)
+                                + dw.sum() * np.outer(va, va))
+        inner = getattr(self.inner, "normal_matrix", None)
+        if inner is not None:
+            A = A + inner(basis, m, X)
+        return 0.5 * (A + A.T)
