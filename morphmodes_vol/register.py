@@ -444,7 +444,7 @@ class Registration:
 
 @dataclass
 class _StartRun:
-    """Algorithm 1 from one start: its result, SDF-query time, full-grid energy, edge strain."""
+    """Algorithm 1 from one start: its result, SDF-query time, full-grid objective, edge strain."""
 
     label: str
     result: object
@@ -454,17 +454,14 @@ class _StartRun:
 
 
 def _select_start(runs: list[_StartRun], factor: float) -> _StartRun:
-    """The run with the lowest objective (``factor == 1``), or the least distorted run
-    (lowest edge strain) among those whose objective is within ``factor`` of the lowest: the
-    same body in another pose is close to an isometry, and a registration with wrong
-    correspondences may fit the SDF as well but stretch the surface more (docs/method.md).
-    With the isometry prior on, the objective already weighs that stretch."""
+    """The least distorted run (lowest edge strain) among those whose objective is within
+    ``factor`` of the lowest: the same body in another pose is close to an isometry, and a
+    registration with wrong correspondences may fit the SDF as well but stretch the surface
+    more (docs/method.md)."""
     finite = [r for r in runs if np.isfinite(r.energy)]
     if not finite:
         return runs[0]
     lowest = min(r.energy for r in finite)
-    if factor <= 1:
-        return min(finite, key=lambda r: r.energy)
     return min((r for r in finite if r.energy <= factor * lowest), key=lambda r: r.strain)
 
 
