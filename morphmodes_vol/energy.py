@@ -22,6 +22,7 @@ With respect to the subspace coefficients it is ``B^T dE/dx`` (Algorithm 1), see
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 
@@ -29,7 +30,7 @@ import numpy as np
 
 from .sdf.source import SignMethod, signed_distance
 
-__all__ = ["SDFEnergy", "EnergyEvaluation"]
+__all__ = ["SDFEnergy", "EnergyEvaluation", "AddedTerm"]
 
 
 @dataclass(frozen=True)
@@ -163,3 +164,59 @@ class SDFEnergy:
             normal=sd.normal,
             volume=float(self.weights.sum()),
         )
+
+
+class AddedTerm:
+    """Base of a term added to an energy with the interface of :class:`SDFEnergy`
+    (``evaluate``, ``refresh``, ``start_stage``, ``F``, ``weights``, ``evaluations``,
+    ``seconds``), so the optimizers of :mod:`morphmodes_vol.optimize` see no difference.
+
+    A subclass defines :meth:`term` (its value and vertex gradient) and
+    :meth:`term_normal_matrix` (its Gauss-Newton block in the active subspace, as
+    :mod:`morphmodes_vol.optimize.gauss_newton` lays it out); :meth:`evaluate` adds the value
+    to ``energy`` and ``extra_energy`` (so ``rms_residual`` stays Eq. 3's) and
+    :meth:`normal_matrix` adds the inner energy's block when it has one. Used by the
+    landmarks (:mod:`morphmodes_vol.landmarks`) and the isometry prior
+    (:mod:`morphmodes_vol.isometry`).
+    """
+
+    def __init__(self, inner):
+        self.inner = inner
+
+    # the optimizer reads these from the energy it is given
+    F = property(lambda self: self.inner.F)
+    weights = property(lambda self: self.inner.weights)
+    evaluations = property(lambda self: self.inner.evaluations)
+    seconds = property(lambda self: self.inner.seconds)
+
+    def refresh(self, X: np.ndarray, force: bool = False) -> bool:
+        return self.inner.refresh(X, force)
+
+    def start_stage(self, m: int) -> None:
+        self.inner.start_stage(m)
+
+    def term(self, X: np.ndarray) -> tuple[float, np.ndarray]:
+        """The term's value and its vertex gradient ``(n, 3)`` at ``X (n, 3)``."""
+        raise NotImplementedError
+
+    def term_normal_matrix(self, basis, m: int, X: np.ndarray | None) -> np.ndarray:
+        """The term's Gauss-Newton block ``(12m, 12m)`` at ``X (n, 3)`` in the first ``m`` modes."""
+        raise NotImplementedError
+
+    def _evaluation(self, total: EnergyEvaluation, value: float) -> EnergyEvaluation:
+        """The evaluation to return; a subclass may add fields (``value``: the term's)."""
+        return total
+
+    def evaluate(self, X: np.ndarray) -> EnergyEvaluation:
+        """The inner energy plus the term, and the vertex gradient, at ``X (n, 3)``."""
+        ev = self.inner.evaluate(X)
+        value, grad = self.term(X)
+        total = dataclasses.replace(ev, energy=ev.energy + value, gradient=ev.gradient + grad,
+                                    extra_energy=ev.extra_energy + value)
+        return self._evaluation(total, value)
+
+    def normal_matrix(self, basis, m: int, X: np.ndarray | None = None) -> np.ndarray:
+        """The term's Gauss-Newton block plus the inner energy's, when it has one."""
+        A = self.term_normal_matrix(basis, m, X)
+        inner = getattr(self.inner, "normal_matrix", None)
+        return A if inner is None else A + inner(basis, m, X)

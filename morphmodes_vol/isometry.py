@@ -33,12 +33,10 @@ va^T)``, ``va = J^T a``, ``vd = J^T d``.
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import scipy.sparse as sp
 
-from .energy import EnergyEvaluation
+from .energy import AddedTerm
 from .optimize.gauss_newton import _assemble, _skinning_matrix
 
 __all__ = ["IsometryEnergy", "edge_area_shares", "log_stretch_variance"]
@@ -101,11 +99,10 @@ def log_stretch_variance(V0, V, F) -> float:
     return float(shares @ (r * r))
 
 
-class IsometryEnergy:
+class IsometryEnergy(AddedTerm):
     """``E_inner + E_iso`` with the interface of :class:`~morphmodes_vol.energy.SDFEnergy`
-    (``evaluate``, ``refresh``, ``start_stage``, ``F``, ``weights``, ``evaluations``,
-    ``seconds``) and a Gauss-Newton block :meth:`normal_matrix` for the Levenberg-Marquardt
-    step.
+    (:class:`~morphmodes_vol.energy.AddedTerm`) and a Gauss-Newton block for the
+    Levenberg-Marquardt step.
 
     Parameters
     ----------
@@ -135,7 +132,7 @@ class IsometryEnergy:
     """
 
     def __init__(self, inner, X0, faces, weight: float, volume: float, tolerance: float = 0.0):
-        self.inner = inner
+        super().__init__(inner)
         self.tolerance = float(tolerance)
         X0 = np.asarray(X0, dtype=np.float64)
         self.edges, self.shares = edge_area_shares(X0, faces)
@@ -149,18 +146,6 @@ class IsometryEnergy:
         self._incidence = sp.csr_matrix((np.r_[np.ones(e), -np.ones(e)], (np.r_[np.arange(e), np.arange(e)],
                                                                            np.r_[p, q])), shape=(e, self.n))
         self._C: dict[int, np.ndarray] = {}
-
-    # the optimizer reads these from the energy it is given
-    F = property(lambda self: self.inner.F)
-    weights = property(lambda self: self.inner.weights)
-    evaluations = property(lambda self: self.inner.evaluations)
-    seconds = property(lambda self: self.inner.seconds)
-
-    def refresh(self, X: np.ndarray, force: bool = False) -> bool:
-        return self.inner.refresh(X, force)
-
-    def start_stage(self, m: int) -> None:
-        self.inner.start_stage(m)
 
     def _stretch(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Penalized residuals ``h(r) (E,)`` (``r`` beyond the tolerance), the mask of edges
@@ -184,19 +169,10 @@ class IsometryEnergy:
         np.add.at(grad, self.edges[:, 1], -g_e)
         return self.coefficient * float(ah @ h), grad
 
-    def evaluate(self, X: np.ndarray) -> EnergyEvaluation:
-        """``E_inner + E_iso`` and its vertex gradient at ``X (n, 3)``; ``extra_energy``
-        includes ``E_iso`` (so ``rms_residual`` stays the SDF's)."""
-        ev = self.inner.evaluate(X)
-        e, g = self.term(X)
-        return dataclasses.replace(ev, energy=ev.energy + e, gradient=ev.gradient + g,
-                                   extra_energy=ev.extra_energy + e)
-
-    def normal_matrix(self, basis, m: int, X: np.ndarray) -> np.ndarray:
+    def term_normal_matrix(self, basis, m: int, X: np.ndarray) -> np.ndarray:
         """The term's Gauss-Newton block at the vertices ``X (n, 3)`` in the first ``m``
         modes, ``(12m, 12m)`` in the T layout of
-        :class:`~morphmodes_vol.optimize.gauss_newton.NormalEquations` (module docstring),
-        plus the inner energy's block when it has one."""
+        :class:`~morphmodes_vol.optimize.gauss_newton.NormalEquations` (module docstring)."""
         if m not in self._C:
             self._C = {m: _skinning_matrix(basis, m)}
         C = self._C[m]
@@ -218,7 +194,4 @@ class IsometryEnergy:
         va, vd = pulled(a), pulled(dw)
         A = self.coefficient * (_assemble(blocks, m) - np.outer(va, vd) - np.outer(vd, va)
                                 + dw.sum() * np.outer(va, va))
-        inner = getattr(self.inner, "normal_matrix", None)
-        if inner is not None:
-            A = A + inner(basis, m, X)
         return 0.5 * (A + A.T)

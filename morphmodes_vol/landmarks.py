@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .energy import EnergyEvaluation
+from .energy import AddedTerm, EnergyEvaluation
 from .errors import LandmarkError
 from .optimize.gauss_newton import _assemble, _skinning_matrix
 
@@ -225,10 +225,10 @@ class LandmarkEvaluation(EnergyEvaluation):
     landmark_energy: float = 0.0
 
 
-class LandmarkEnergy:
+class LandmarkEnergy(AddedTerm):
     """``E_sdf + E_lm`` with the interface of :class:`~morphmodes_vol.energy.SDFEnergy`
-    (``evaluate``, ``refresh``, ``start_stage``, ``F``, ``weights``, ``evaluations``,
-    ``seconds``), so the optimizers of :mod:`morphmodes_vol.optimize` see no difference.
+    (:class:`~morphmodes_vol.energy.AddedTerm`), so the optimizers of
+    :mod:`morphmodes_vol.optimize` see no difference.
 
     Parameters
     ----------
@@ -256,50 +256,31 @@ class LandmarkEnergy:
     """
 
     def __init__(self, inner, indices, points, weight: float, volume: float):
-        self.inner = inner
+        super().__init__(inner)
         self.indices = np.asarray(indices, dtype=np.int64)
         self.points = np.asarray(points, dtype=np.float64)
         self.coefficient = float(weight) * float(volume) / max(self.indices.shape[0], 1)
         self._normal: dict[int, np.ndarray] = {}
 
-    # the optimizer reads these from the energy it is given
-    F = property(lambda self: self.inner.F)
-    weights = property(lambda self: self.inner.weights)
-    evaluations = property(lambda self: self.inner.evaluations)
-    seconds = property(lambda self: self.inner.seconds)
-
-    def refresh(self, X: np.ndarray, force: bool = False) -> bool:
-        return self.inner.refresh(X, force)
-
-    def start_stage(self, m: int) -> None:
-        self.inner.start_stage(m)
-
-    def landmark_term(self, X: np.ndarray) -> tuple[float, np.ndarray]:
+    def term(self, X: np.ndarray) -> tuple[float, np.ndarray]:
         """``E_lm`` and its vertex gradient ``(n, 3)`` at ``X (n, 3)``."""
         d = X[self.indices] - self.points
         grad = np.zeros_like(X, dtype=np.float64)
         np.add.at(grad, self.indices, 2.0 * self.coefficient * d)
         return self.coefficient * float(np.sum(d * d)), grad
 
-    def evaluate(self, X: np.ndarray) -> LandmarkEvaluation:
-        """``E_sdf + E_lm`` and its vertex gradient at ``X (n, 3)``."""
-        ev = self.inner.evaluate(X)
-        e_lm, g_lm = self.landmark_term(X)
-        fields = {f.name: getattr(ev, f.name) for f in dataclasses.fields(EnergyEvaluation)}
-        fields.update(energy=ev.energy + e_lm, gradient=ev.gradient + g_lm,
-                      extra_energy=ev.extra_energy + e_lm)
-        return LandmarkEvaluation(**fields, landmark_energy=e_lm)
+    def _evaluation(self, total: EnergyEvaluation, value: float) -> LandmarkEvaluation:
+        fields = {f.name: getattr(total, f.name) for f in dataclasses.fields(EnergyEvaluation)}
+        return LandmarkEvaluation(**fields, landmark_energy=value)
 
-    def normal_matrix(self, basis, m: int, X: np.ndarray | None = None) -> np.ndarray:
+    def term_normal_matrix(self, basis, m: int, X: np.ndarray | None = None) -> np.ndarray:
         """The term's block of the Gauss-Newton matrix in the first ``m`` modes, in the T
         layout of :class:`~morphmodes_vol.optimize.gauss_newton.NormalEquations`:
         ``coefficient * C_L^T C_L`` on each coordinate block, ``(12m, 12m)`` (``C_L`` the
         landmark rows of the skinning matrix; half the term's Hessian, as ``A`` is half
-        the Gauss-Newton Hessian of Eq. 3), plus the inner energy's block at the vertices
-        ``X (n, 3)`` when it has one (the isometry prior's)."""
+        the Gauss-Newton Hessian of Eq. 3); constant, ``X`` is not used."""
         if m not in self._normal:
             CL = _skinning_matrix(basis, m)[self.indices]
             block = self.coefficient * (CL.T @ CL)
             self._normal[m] = _assemble({(a, a): block for a in range(3)}, m)
-        inner = getattr(self.inner, "normal_matrix", None)
-        return self._normal[m] if inner is None else self._normal[m] + inner(basis, m, X)
+        return self._normal[m]
