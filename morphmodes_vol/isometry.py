@@ -1,4 +1,4 @@
-"""Optional isometry prior: a penalty on the uneven stretch of the source's edges, added to Eq. (3).
+"""The isometry prior (on by default): a penalty on the uneven stretch of the source's edges, added to Eq. (3).
 
 The paper's energy (Eq. 3) only asks the deformed source's SDF to match the target's; the
 skinning subspace is its only regularizer. A body in another pose is close to an isometry of

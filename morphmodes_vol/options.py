@@ -172,7 +172,7 @@ class RegistrationOptions:
     isometry_tolerance : float
         Deviation of an edge's log stretch from the mean that costs nothing (``0.2``: about
         +-20%), so shapes that differ by moderate stretch (a capsule stretched by 1.2 and
-        bent) register as without the prior.
+        bent) register as well as without the prior (docs/method.md).
     init_lm_iterations_per_stage : int
         ``lm_iterations_per_stage`` of the run from the aligned start (the rest start keeps
         ``lm_iterations_per_stage``). 3, as for the rest start: on the 18 lion and cat poses

@@ -19,7 +19,7 @@ from .eigenbasis import LBSBasis, mesh_skinning_weights, to_paper_z
 from .energy import SDFEnergy
 from .errors import OptionError
 from .initialize import InitialAlignment, align
-from .isometry import IsometryEnergy, log_stretch_variance
+from .isometry import IsometryEnergy
 from .landmarks import LandmarkEnergy, Landmarks, as_landmarks, landmark_rms
 from .mesh import MeshLike, Normalization, as_mesh, bbox_diagonal, joint_normalization
 from .limits import check_memory, estimate_memory
