@@ -235,16 +235,11 @@ class RigidSourceField:
     def sample(self, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``f_0 (k,)`` and ``grad f_0 (k, 3)`` at points ``P (k, 3)`` of the rest frame.
 
-        Outside the grid's box the value grows by the distance to the box (a lower bound of
+        Outside the grid's box the value grows by the distance to the box (an upper bound of
         the true distance, continuous across the box) and the gradient is the boundary's.
         """
-        lo = self.grid.origin
-        hi = lo + self.grid.spacing * (np.asarray(self.grid.shape) - 1)
-        inner = np.clip(P, lo, hi)
-        out = trilinear_sample(self.values, self.grid, inner)
-        f, n = out[:, 0], out[:, 1:]
-        beyond = np.linalg.norm(P - inner, axis=1)
-        return f + beyond, n
+        out = trilinear_sample(self.values, self.grid, P)  # clamped to the box
+        return out[:, 0] + self.grid.distance_outside(P), out[:, 1:]
 
 
 @dataclass(frozen=True)

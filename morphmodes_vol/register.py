@@ -297,9 +297,7 @@ class Registration:
         """The initialization stage (:func:`morphmodes_vol.initialize.align`) on a coarse grid
         of ``options.init_grid`` nodes over the pair's box."""
         o = self.options
-        lo, hi = self.quadrature.origin, self.quadrature.origin + self.quadrature.spacing * (
-            np.asarray(self.quadrature.shape) - 1)
-        coarse = Grid.covering(lo, hi, o.init_grid)
+        coarse = Grid.covering(self.quadrature.origin, self.quadrature.upper, o.init_grid)
         Q = coarse.points()
         return align(self.X0, self.source_sdf_faces, Q, self.sample_target(Q), coarse.cell_volume,
                      kind=o.initialization, keep=o.init_candidates, switch=o.init_switch,

@@ -128,8 +128,7 @@ class TargetField:
         frame's units; ``(k,)``."""
         own = self.frame.apply(frame.undo(points))
         g = self.sdf.grid
-        hi = g.origin + g.spacing * (np.asarray(g.shape) - 1)
-        inside = np.all((own >= g.origin) & (own <= hi), axis=1)
+        inside = np.all((own >= g.origin) & (own <= g.upper), axis=1)
         values = np.empty(own.shape[0])
         values[inside] = self.sdf.sample(own[inside])
         if not inside.all():

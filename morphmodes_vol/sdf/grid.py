@@ -66,6 +66,25 @@ class Grid:
         """Volume ``spacing^3`` each node stands for (the quadrature weight of Eq. 3)."""
         return self.spacing**3
 
+    @property
+    def upper(self) -> np.ndarray:
+        """The last node, ``(3,)``: the grid's box is ``[origin, upper]``."""
+        return np.asarray(self.origin, dtype=np.float64) + self.spacing * (np.asarray(self.shape) - 1)
+
+    def distance_outside(self, points: np.ndarray) -> np.ndarray:
+        """Distance of ``points (k, 3)`` to the grid's box, ``(k,)``, 0 inside it: added to
+        the value at the nearest point of the box, it extrapolates a distance field beyond
+        the box (an upper bound of the true distance outside a surface the box contains).
+
+        Examples
+        --------
+        >>> g = Grid(origin=np.zeros(3), spacing=0.5, shape=(3, 3, 3))     # the box [0, 1]^3
+        >>> g.upper.tolist(), g.distance_outside(np.array([[0.5, 0.5, 0.5], [2.0, 1.0, 1.0]])).tolist()
+        ([1.0, 1.0, 1.0], [0.0, 1.0])
+        """
+        points = np.asarray(points, dtype=np.float64)
+        return np.linalg.norm(points - np.clip(points, self.origin, self.upper), axis=1)
+
     def axes(self) -> list[np.ndarray]:
         """Node coordinates along x, y and z."""
         return [self.origin[d] + self.spacing * np.arange(self.shape[d]) for d in range(3)]

@@ -165,9 +165,7 @@ class DenseTargetSDF:
         """
         values = trilinear_sample(self.values, self.grid, points)
         if self.extrapolate:
-            points = np.asarray(points, dtype=np.float64)
-            hi = self.grid.origin + self.grid.spacing * (np.asarray(self.grid.shape) - 1)
-            values = values + np.linalg.norm(points - np.clip(points, self.grid.origin, hi), axis=1)
+            values = values + self.grid.distance_outside(points)
         return values
 
     def surface_bounds(self) -> tuple[np.ndarray, np.ndarray]:
