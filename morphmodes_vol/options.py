@@ -104,6 +104,12 @@ class RegistrationOptions:
         Cap on the Levenberg-Marquardt steps of one stage (``max_iterations_per_stage`` is
         the gradient optimizer's). Few on purpose: converging early stages fully raised the
         ground-truth error on the lion (docs/method.md).
+    lm_final_iterations : int or None
+        Cap on the Levenberg-Marquardt steps of the last stage (``modes`` modes); ``None``
+        (default): ``lm_iterations_per_stage``, as every stage. With one step per stage
+        (``lm_iterations_per_stage=1``, the schedule measured in docs/method.md, "Steps per
+        stage and modes") a cap of 5 lets the last stage run until the stall tests end it,
+        so the result is the full subspace's optimum rather than one step towards it.
     lm_stall_decrease : float
         A Levenberg-Marquardt stage also ends when one step lowers the energy by less than
         this fraction of it (``0`` turns the test off).
@@ -203,6 +209,7 @@ class RegistrationOptions:
     lm_damping: float = 1e-3
     lm_max_step: float = 0.1
     lm_iterations_per_stage: int = 3
+    lm_final_iterations: int | None = None
     lm_stall_decrease: float = 0.01
     preconditioner: Preconditioner = "block"
     source_sign: SignMethod = "raycast"
@@ -276,6 +283,9 @@ class RegistrationOptions:
         need(self.lm_max_step > 0, "lm_max_step", "a positive float")
         need(_is_int(self.lm_iterations_per_stage) and self.lm_iterations_per_stage >= 1,
              "lm_iterations_per_stage", "a positive integer")
+        need(self.lm_final_iterations is None
+             or (_is_int(self.lm_final_iterations) and self.lm_final_iterations >= 1),
+             "lm_final_iterations", "None or a positive integer")
         need(0 <= self.lm_stall_decrease < 1, "lm_stall_decrease", "a float in [0, 1)")
         need(self.preconditioner in PRECONDITIONERS, "preconditioner",
              f"one of {PRECONDITIONERS}")

@@ -119,6 +119,22 @@ def test_iteration_caps_and_stage_bookkeeping(optimizer):
     assert r.status == "stage_cap" and r.modes == 2
 
 
+def test_last_stage_has_its_own_step_cap():
+    """``lm_final_iterations``: one step per stage, then up to 4 in the last (all taken: the
+    stall tests are off); ``None`` keeps the last stage at ``lm_iterations_per_stage``."""
+    V, F = flat_capsule()
+    target = bend(V, np.deg2rad(40))
+    common = dict(grid=16, modes=3, lm_iterations_per_stage=1, lm_stall_decrease=0.0,
+                  stall_start=1e-12, stall_end=1e-12, initialization="none")
+    r = mm.register((V, F), (target, F), lm_final_iterations=4, **common)
+    assert r.history.stage_starts == [0, 1, 2] and r.history.modes == [1, 2, 3, 3, 3, 3]
+    assert r.history.stage_ends == ["iteration_cap"] * 3 and r.status == "stage_cap"
+    r = mm.register((V, F), (target, F), **common)
+    assert r.history.modes == [1, 2, 3]
+    with pytest.raises(mm.OptionError, match="lm_final_iterations"):
+        mm.RegistrationOptions(lm_final_iterations=0)
+
+
 def test_paper_plain_gradient_step_also_descends():
     V, F = flat_capsule()
     target = V * [1.1, 1.0, 1.05]

@@ -42,5 +42,6 @@ def fixed_subspace(
     options = options if options is not None else RegistrationOptions()
     options = options.replace(modes=modes, initial_modes=modes,
                               max_iterations_per_stage=options.max_iterations,
-                              lm_iterations_per_stage=options.max_iterations)
+                              lm_iterations_per_stage=options.max_iterations,
+                              lm_final_iterations=options.max_iterations)
     return register(source, target, options, ground_truth=ground_truth, progress=progress)

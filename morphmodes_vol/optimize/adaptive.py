@@ -239,6 +239,11 @@ class _LevenbergMarquardtStepper:
         self.nu = 2.0
 
     def start_stage(self, m: int) -> None:
+        # the last stage may have a cap of its own (one step per mode, the last until it stalls)
+        last = m >= min(self.options.modes, self.basis.max_modes)
+        final = self.options.lm_final_iterations
+        self.iterations_per_stage = (final if last and final is not None
+                                     else self.options.lm_iterations_per_stage)
         self.metric = subspace_metric(self.basis, m)
         # a new mode makes the model richer: relax the damping learned so far
         self.damping = max(self.damping / 3.0, self.options.lm_damping * 1e-3)
