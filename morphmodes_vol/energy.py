@@ -30,7 +30,7 @@ import numpy as np
 
 from .sdf.source import SignMethod, signed_distance
 
-__all__ = ["SDFEnergy", "EnergyEvaluation", "AddedTerm"]
+__all__ = ["SDFEnergy", "EnergyEvaluation", "KnownQueries", "AddedTerm"]
 
 
 @dataclass(frozen=True)
@@ -127,6 +127,8 @@ class SDFEnergy:
         self.sign: SignMethod = sign
         self.samples = int(samples)
         self.evaluations = 0
+        self.points_queried = 0
+        self.last_value: np.ndarray | None = None
         self.seconds = 0.0
 
     def refresh(self, X: np.ndarray, force: bool = False) -> bool:
@@ -137,21 +139,44 @@ class SDFEnergy:
         """One quadrature for every stage: nothing to do (see
         :class:`morphmodes_vol.quadrature.CoarseToFine`)."""
 
-    def evaluate(self, X: np.ndarray) -> EnergyEvaluation:
-        """Energy and vertex gradient at vertices ``X (n, 3)``."""
+    def evaluate(self, X: np.ndarray, known: "KnownQueries | None" = None) -> EnergyEvaluation:
+        """Energy and vertex gradient at vertices ``X (n, 3)``.
+
+        ``known``: the queries of some points already answered for these very vertices
+        (:class:`KnownQueries`; a band refresh keeps most points,
+        :mod:`morphmodes_vol.quadrature`); only the other points are queried, and the
+        result is the same as without.
+        """
         t0 = time.perf_counter()
-        sd = signed_distance(X, self.F, self.Q, sign=self.sign, samples=self.samples)
-        r = sd.value - self.g
+        if known is None:
+            sd = signed_distance(X, self.F, self.Q, sign=self.sign, samples=self.samples)
+            value, faces, bary, normal = sd.value, sd.closest.faces, sd.closest.barycentrics, sd.normal
+            self.points_queried += len(value)
+        else:
+            k = self.Q.shape[0]
+            if known.mask.shape != (k,):
+                raise ValueError(f"known.mask must have shape ({k},), got {known.mask.shape}")
+            new = ~known.mask
+            sd = signed_distance(X, self.F, self.Q[new], sign=self.sign, samples=self.samples)
+            value, faces = np.empty(k), np.empty(k, dtype=np.int64)
+            bary, normal = np.empty((k, 3)), np.empty((k, 3))
+            for out, old, fresh in ((value, known.value, sd.value), (faces, known.faces, sd.closest.faces),
+                                    (bary, known.barycentrics, sd.closest.barycentrics),
+                                    (normal, known.normal, sd.normal)):
+                out[known.mask], out[new] = old, fresh
+            self.points_queried += int(new.sum())
+        self.last_value = value  # the signed distances, for a band refresh (quadrature.py)
+        r = value - self.g
         wr = self.weights * r
         energy = float(wr @ r)
         # dE/dv for the three corners of each closest triangle, scattered to vertices
-        coef = (-2.0 * wr)[:, None] * sd.closest.barycentrics  # (k, 3)
-        tri = self.F[sd.closest.faces]  # (k, 3)
+        coef = (-2.0 * wr)[:, None] * bary  # (k, 3)
+        tri = self.F[faces]  # (k, 3)
         n = X.shape[0]
         grad = np.empty((n, 3))
         idx = tri.ravel()
         for d in range(3):
-            contrib = (coef * sd.normal[:, d : d + 1]).ravel()
+            contrib = (coef * normal[:, d : d + 1]).ravel()
             grad[:, d] = np.bincount(idx, weights=contrib, minlength=n)
         self.evaluations += 1
         self.seconds += time.perf_counter() - t0
@@ -159,11 +184,25 @@ class SDFEnergy:
             energy=energy,
             gradient=grad,
             residual=r,
-            closest_faces=sd.closest.faces,
-            barycentrics=sd.closest.barycentrics,
-            normal=sd.normal,
+            closest_faces=faces,
+            barycentrics=bary,
+            normal=normal,
             volume=float(self.weights.sum()),
         )
+
+
+@dataclass(frozen=True)
+class KnownQueries:
+    """Source-SDF queries already answered at some quadrature points (for the vertices
+    about to be evaluated): ``mask (k,) bool`` marks them among the energy's ``k`` points;
+    ``value (j,)``, ``faces (j,)``, ``barycentrics (j, 3)`` and ``normal (j, 3)`` are theirs
+    (``j = mask.sum()``), as :class:`EnergyEvaluation` holds them."""
+
+    mask: np.ndarray
+    value: np.ndarray
+    faces: np.ndarray
+    barycentrics: np.ndarray
+    normal: np.ndarray
 
 
 class AddedTerm:
@@ -187,6 +226,7 @@ class AddedTerm:
     F = property(lambda self: self.inner.F)
     weights = property(lambda self: self.inner.weights)
     evaluations = property(lambda self: self.inner.evaluations)
+    partial_evaluations = property(lambda self: getattr(self.inner, "partial_evaluations", 0))
     seconds = property(lambda self: self.inner.seconds)
 
     def refresh(self, X: np.ndarray, force: bool = False) -> bool:

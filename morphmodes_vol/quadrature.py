@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .energy import EnergyEvaluation, SDFEnergy
+from .energy import EnergyEvaluation, KnownQueries, SDFEnergy
 from .sdf.grid import Grid
 from .sdf.source import SignMethod, closest_points
 
@@ -128,7 +128,12 @@ class BandEnergy:
         self._near_target = np.abs(self.g_centers) < reach + grid.spacing  # trilinear slack
         self._anchor: np.ndarray | None = None
         self._inner: SDFEnergy | None = None
+        self._ids: np.ndarray | None = None  # each point's node, or N + its block (far centres)
+        self._last = None  # (X, ids, evaluation) of the last evaluation, for a refresh
         self.evaluations = 0
+        self.partial_evaluations = 0
+        self.points_queried = 0
+        self.points_evaluated = 0
         self.seconds = 0.0
         self.refreshes = 0
 
@@ -157,6 +162,7 @@ class BandEnergy:
         g = np.concatenate([self.g_nodes[fine], self.g_centers[far]])
         w = np.concatenate([np.full(int(fine.sum()), h3), self.blocks.counts[far] * h3])
         self._inner = SDFEnergy(self.F, Q, g, w, sign=self.sign, samples=self.samples)
+        self._ids = np.concatenate([np.flatnonzero(fine), self.points.shape[0] + far])
         self._anchor = np.array(X, copy=True)
         self.refreshes += 1
         self.seconds += time.perf_counter() - t0
@@ -168,14 +174,43 @@ class BandEnergy:
         """One grid for every stage (the band follows the source through :meth:`refresh`)."""
 
     def evaluate(self, X: np.ndarray) -> EnergyEvaluation:
-        """Energy and vertex gradient at ``X (n, 3)`` on the current band quadrature."""
+        """Energy and vertex gradient at ``X (n, 3)`` on the current band quadrature.
+
+        The first evaluation after a refresh is usually at the vertices of the last
+        evaluation (the optimizer re-evaluates the same state on the new quadrature): then
+        the points both quadratures share keep their answers and only the others are
+        queried (``partial_evaluations``), with the same result as a full evaluation.
+        """
         if self._inner is None:
             self.refresh(X, force=True)
-        ev = self._inner.evaluate(X)
+        known = self._known(X)
+        ev = self._inner.evaluate(X, known)
         self.evaluations += 1
+        self.partial_evaluations += known is not None
+        self.points_queried += self._inner.points_queried
+        self.points_evaluated += len(self._ids)
+        self._inner.points_queried = 0
         self.seconds += self._inner.seconds
         self._inner.seconds = 0.0
+        self._last = (np.array(X, copy=True), self._ids, ev, self._inner.last_value)
         return ev
+
+    def _known(self, X: np.ndarray) -> KnownQueries | None:
+        """The answers of the last evaluation at the current quadrature's points, when that
+        evaluation was at these vertices ``X`` on another quadrature; else ``None``."""
+        if self._last is None:
+            return None
+        X_last, ids_last, ev, value_last = self._last
+        if ids_last is self._ids or X_last.shape != X.shape or not np.array_equal(X_last, X):
+            return None
+        # both id lists are ascending (fine nodes, then N + far blocks)
+        pos = np.minimum(np.searchsorted(ids_last, self._ids), len(ids_last) - 1)
+        mask = ids_last[pos] == self._ids
+        if not mask.any():
+            return None
+        old = pos[mask]
+        return KnownQueries(mask=mask, value=value_last[old], faces=ev.closest_faces[old],
+                            barycentrics=ev.barycentrics[old], normal=ev.normal[old])
 
 
 def every_other_node(grid: Grid) -> tuple[Grid, np.ndarray]:
@@ -222,6 +257,8 @@ class CoarseToFine:
     weights = property(lambda self: self.current.weights)
     Q = property(lambda self: self.current.Q)
     evaluations = property(lambda self: self.coarse.evaluations + self.fine.evaluations)
+    partial_evaluations = property(lambda self: sum(getattr(e, "partial_evaluations", 0)
+                                                    for e in (self.coarse, self.fine)))
     seconds = property(lambda self: self.coarse.seconds + self.fine.seconds)
 
     def start_stage(self, m: int) -> None:

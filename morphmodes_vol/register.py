@@ -400,6 +400,8 @@ class Registration:
         metrics["starts"] = [{"start": r.label, "energy": r.energy, "edge_strain": r.strain,
                               "evaluations": r.result.history.evaluations} for r in runs]
         metrics["evaluations_all_starts"] = sum(r.result.history.evaluations for r in runs)
+        # of which after a band refresh, querying only the points new to the band
+        metrics["partial_evaluations_all_starts"] = sum(r.result.history.partial_evaluations for r in runs)
         if ground_truth is not None:
             truth = ground_truth if isinstance(ground_truth, np.ndarray) else as_mesh(ground_truth, "ground truth")[0]
             metrics["identity_error"] = ground_truth_error(self.source_vertices, truth)

@@ -74,6 +74,8 @@ def run_ours(source, target, truth, overrides: dict, preset: str = "default") ->
         "error": mm.ground_truth_error(result.vertices, truth_V),
         "identity_error": mm.ground_truth_error(reg.source_vertices, truth_V),
         "evaluations": evaluations,
+        # after a band refresh: only the points new to the band are queried
+        "partial_evaluations": result.metrics.get("partial_evaluations_all_starts", 0),
         "init_evaluations": result.metrics.get("init_evaluations", 0),
         "start": result.metrics.get("start", "rest"),
         "refreshes": len(h.refreshes),
@@ -133,6 +135,8 @@ def pairs(selected: list[str]) -> list[tuple[str, object, object]]:
 def _row(pair: str, method: str, r: dict, nricp_wall: float | None) -> str:
     ratio = f"{r['wall_s'] / nricp_wall:.2f}" if nricp_wall else ""
     ev = r.get("evaluations", "")
+    if r.get("partial_evaluations"):
+        ev = f"{ev} ({r['partial_evaluations']} partial)"
     spe = f"{1000 * r['seconds_per_evaluation']:.0f}" if "seconds_per_evaluation" in r else ""
     share = f"{100 * r['sdf_share_of_optimize']:.0f}%" if "sdf_share_of_optimize" in r else ""
     stages = ""

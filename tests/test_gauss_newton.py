@@ -126,6 +126,55 @@ def test_band_keeps_every_node_near_the_moved_source_until_refreshed(lumpy_spher
     assert band.refresh(V + [3 * band.margin, 0.0, 0.0])
 
 
+def test_evaluation_after_a_refresh_reuses_shared_points_with_identical_results(lumpy_sphere):
+    """The optimizer's sequence: an evaluation, a refresh at the same vertices, the evaluation
+    there on the new band. The second queries only the points new to the band, and equals
+    (bit for bit) a fresh band quadrature's full evaluation at those vertices."""
+    V, F = lumpy_sphere
+    _, band, _ = _band_pair(V, F, V * 1.1)
+    band.evaluate(V)
+    moved = V + [3 * band.margin, 0.0, 0.0]
+    band.evaluate(moved)  # on the old band (a trial step)
+    assert band.refresh(moved)
+    queried = band.points_queried
+    got = band.evaluate(moved)
+    new_points = band.points_queried - queried
+    assert band.partial_evaluations == 1 and 0 < new_points < 0.9 * band.Q.shape[0]
+    _, fresh, _ = _band_pair(V, F, V * 1.1)
+    fresh.refresh(moved, force=True)
+    want = fresh.evaluate(moved)
+    assert fresh.partial_evaluations == 0 and fresh.points_queried == fresh.Q.shape[0]
+    np.testing.assert_array_equal(band.Q, fresh.Q)
+    assert got.energy == want.energy
+    for name in ("gradient", "residual", "closest_faces", "barycentrics", "normal"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
+    # another state on the same band: a full evaluation again
+    band.evaluate(moved * 1.01)
+    assert band.partial_evaluations == 1
+
+
+def test_known_queries_give_the_full_evaluation(lumpy_sphere):
+    """``SDFEnergy.evaluate(X, known)`` with the answers of any subset of points equals the
+    evaluation without them."""
+    from morphmodes_vol.energy import KnownQueries
+
+    V, F = lumpy_sphere
+    full, _, _ = _band_pair(V, F, V * 1.1, resolution=16)
+    X = V * [1.05, 1.0, 0.97]
+    want = full.evaluate(X)
+    mask = np.random.default_rng(0).random(full.Q.shape[0]) < 0.6
+    known = KnownQueries(mask=mask, value=full.last_value[mask], faces=want.closest_faces[mask],
+                         barycentrics=want.barycentrics[mask], normal=want.normal[mask])
+    before = full.points_queried
+    got = full.evaluate(X, known)
+    assert full.points_queried - before == int((~mask).sum())
+    assert got.energy == want.energy
+    np.testing.assert_array_equal(got.gradient, want.gradient)
+    with pytest.raises(ValueError, match="mask"):
+        full.evaluate(X, KnownQueries(mask=mask[:5], value=known.value, faces=known.faces,
+                                      barycentrics=known.barycentrics, normal=known.normal))
+
+
 @pytest.mark.parametrize("quadrature", ["full", "band"])
 def test_lm_recovers_known_affine_map(quadrature):
     V, F = capsule(height=1.0, radius=0.3, count=(14, 14))

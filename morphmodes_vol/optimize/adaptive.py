@@ -84,6 +84,9 @@ class OptimizationHistory:
         the paper's donkey-to-horse figure); kept in memory, not in ``to_dict``.
     evaluations : int
         Number of source-SDF evaluations.
+    partial_evaluations : int
+        Of those, the evaluations after a band refresh that queried only the points the new
+        quadrature does not share with the last one (:class:`morphmodes_vol.quadrature.BandEnergy`).
     refreshes : list of int
         Where an adaptive quadrature was recomputed: after ``energy[r]``, so
         ``energy[r + 1]`` is on a new quadrature and need not be below ``energy[r]``. Each
@@ -99,6 +102,7 @@ class OptimizationHistory:
     stage_evaluations: list = field(default_factory=list)
     stage_coefficients: list = field(default_factory=list)
     evaluations: int = 0
+    partial_evaluations: int = 0
     refreshes: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
@@ -111,6 +115,7 @@ class OptimizationHistory:
             "stage_seconds": [float(t) for t in self.stage_seconds],
             "stage_evaluations": [int(k) for k in self.stage_evaluations],
             "evaluations": int(self.evaluations),
+            "partial_evaluations": int(self.partial_evaluations),
             "refreshes": [int(r) for r in self.refreshes],
         }
 
@@ -449,6 +454,7 @@ def _optimize_adaptive(
             status = "stage_cap" if "iteration_cap" in history.stage_ends else "converged"
 
     history.evaluations = energy.evaluations
+    history.partial_evaluations = int(getattr(energy, "partial_evaluations", 0))
     return AdaptiveResult(
         T=T,
         vertices=basis.deform(T),
