@@ -111,6 +111,11 @@ class BandEnergy:
         As in :class:`SDFEnergy`.
     points : (N, 3) float, optional
         ``grid.points()``, when the caller already holds it (not copied).
+
+    Counters: ``evaluations``; ``partial_evaluations``, those after a refresh that queried
+    only the points new to the band (:meth:`evaluate`); ``points_queried`` and
+    ``points_evaluated``, the points sent to the mesh queries and the points the
+    evaluations summed over; ``refreshes``.
     """
 
     def __init__(self, F, grid: Grid, g_nodes, sample_target, band: float, factor: int,
@@ -129,7 +134,7 @@ class BandEnergy:
         self._anchor: np.ndarray | None = None
         self._inner: SDFEnergy | None = None
         self._ids: np.ndarray | None = None  # each point's node, or N + its block (far centres)
-        self._last = None  # (X, ids, evaluation) of the last evaluation, for a refresh
+        self._last = None  # (X, ids, evaluation, signed distances) of the last evaluation
         self.evaluations = 0
         self.partial_evaluations = 0
         self.points_queried = 0
