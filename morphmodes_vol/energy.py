@@ -243,6 +243,26 @@ class AddedTerm:
         """The term's Gauss-Newton block ``(12m, 12m)`` at ``X (n, 3)`` in the first ``m`` modes."""
         raise NotImplementedError
 
+    def term_vertex_blocks(self, X: np.ndarray):
+        """The term's Gauss-Newton matrix in the vertices
+        (:class:`~morphmodes_vol.optimize.gauss_newton.VertexBlocks`), when it has that form,
+        so the optimizer can add it to Eq. (3)'s before the products with the skinning
+        matrix; ``None`` (default): only :meth:`term_normal_matrix`."""
+        return None
+
+    def vertex_blocks(self, X: np.ndarray):
+        """The vertex-space matrices of this term and the inner ones, merged (``None`` if
+        none has one); :meth:`normal_matrix` with ``folded=True`` leaves them out."""
+        own = self.term_vertex_blocks(X)
+        inner = getattr(self.inner, "vertex_blocks", None)
+        other = inner(X) if inner is not None else None
+        if own is None or other is None:
+            return own if other is None else other
+        blocks = dict(other.blocks)
+        for ab, H in own.blocks.items():
+            blocks[ab] = blocks[ab] + H if ab in blocks else H
+        return type(own)(blocks=blocks, outer=list(other.outer) + list(own.outer))
+
     def _evaluation(self, total: EnergyEvaluation, value: float) -> EnergyEvaluation:
         """The evaluation to return; a subclass may add fields (``value``: the term's)."""
         return total
@@ -255,8 +275,15 @@ class AddedTerm:
                                     extra_energy=ev.extra_energy + value)
         return self._evaluation(total, value)
 
-    def normal_matrix(self, basis, m: int, X: np.ndarray | None = None) -> np.ndarray:
-        """The term's Gauss-Newton block plus the inner energy's, when it has one."""
-        A = self.term_normal_matrix(basis, m, X)
+    def normal_matrix(self, basis, m: int, X: np.ndarray | None = None,
+                      folded: bool = False) -> np.ndarray | None:
+        """The term's Gauss-Newton block plus the inner energy's, when it has one.
+        ``folded``: without the terms that have vertex blocks (:meth:`vertex_blocks`, which
+        the optimizer folds into Eq. 3's); ``None`` when nothing is left."""
+        has_blocks = type(self).term_vertex_blocks is not AddedTerm.term_vertex_blocks
+        A = None if folded and has_blocks else self.term_normal_matrix(basis, m, X)
         inner = getattr(self.inner, "normal_matrix", None)
-        return A if inner is None else A + inner(basis, m, X)
+        B = None if inner is None else inner(basis, m, X, folded=folded)
+        if A is None or B is None:
+            return A if B is None else B
+        return A + B

@@ -28,7 +28,9 @@ mean, and ``drho_e/dx_i = (x_i - x_j) / l_e^2``. Gauss-Newton block (half the He
 linearized residuals, as :mod:`morphmodes_vol.optimize.gauss_newton` uses): with ``J =
 drho/dz`` in the active subspace and ``d = a`` on the edges beyond the tolerance (0 elsewhere),
 ``weight V J^T P^T diag(d) P J = weight V (J^T diag(d) J - va vd^T - vd va^T + (sum d) va
-va^T)``, ``va = J^T a``, ``vd = J^T d``.
+va^T)``, ``va = J^T a``, ``vd = J^T d``. ``J = J_x B``, so the term hands the optimizer its
+matrix in the vertices (:meth:`IsometryEnergy.term_vertex_blocks`), which joins Eq. (3)'s
+before the products with the skinning matrix ``B``.
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .energy import AddedTerm
-from .optimize.gauss_newton import _assemble, _skinning_matrix
+from .optimize.gauss_newton import VertexBlocks
 
 __all__ = ["IsometryEnergy", "edge_area_shares", "log_stretch_variance"]
 
@@ -145,7 +147,6 @@ class IsometryEnergy(AddedTerm):
         self._rows, self._cols = np.r_[p, q, p, q], np.r_[p, q, q, p]
         self._incidence = sp.csr_matrix((np.r_[np.ones(e), -np.ones(e)], (np.r_[np.arange(e), np.arange(e)],
                                                                            np.r_[p, q])), shape=(e, self.n))
-        self._C: dict[int, np.ndarray] = {}
 
     def _stretch(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Penalized residuals ``h(r) (E,)`` (``r`` beyond the tolerance), the mask of edges
@@ -169,29 +170,29 @@ class IsometryEnergy(AddedTerm):
         np.add.at(grad, self.edges[:, 1], -g_e)
         return self.coefficient * float(ah @ h), grad
 
+    def term_vertex_blocks(self, X: np.ndarray) -> VertexBlocks:
+        """The term's Gauss-Newton matrix in the vertices at ``X (n, 3)`` (module docstring):
+        ``J^T P^T diag(d) P J = J^T diag(d) J - va vd^T - vd va^T + (sum d) va va^T``, the
+        first part as sparse coordinate blocks, the others as outer products."""
+        _, active, drho = self._stretch(np.asarray(X, dtype=np.float64))
+        a = self.shares
+        dw = a * active  # diag(d) of the edges beyond the tolerance
+        c = self.coefficient
+        blocks = {}
+        for i in range(3):
+            for j in range(i, 3):
+                w = c * dw * drho[:, i] * drho[:, j]
+                blocks[i, j] = sp.csr_matrix((np.r_[w, w, -w, -w], (self._rows, self._cols)),
+                                             shape=(self.n, self.n))
+
+        def vertex(weights):  # D^T (weights * drho), (n, 3): J^T weights before B^T
+            return np.stack([self._incidence.T @ (weights * drho[:, i]) for i in range(3)], axis=1)
+
+        ua, ud = vertex(a), vertex(dw)
+        return VertexBlocks(blocks=blocks, outer=[(-c, ua, ud), (-c, ud, ua), (c * dw.sum(), ua, ua)])
+
     def term_normal_matrix(self, basis, m: int, X: np.ndarray) -> np.ndarray:
         """The term's Gauss-Newton block at the vertices ``X (n, 3)`` in the first ``m``
         modes, ``(12m, 12m)`` in the T layout of
         :class:`~morphmodes_vol.optimize.gauss_newton.NormalEquations` (module docstring)."""
-        if m not in self._C:
-            self._C = {m: _skinning_matrix(basis, m)}
-        C = self._C[m]
-        _, active, drho = self._stretch(np.asarray(X, dtype=np.float64))
-        a = self.shares
-        dw = a * active  # diag(d) of the edges beyond the tolerance
-        blocks = {}
-        for i in range(3):
-            for j in range(i, 3):
-                w = dw * drho[:, i] * drho[:, j]
-                H = sp.csr_matrix((np.r_[w, w, -w, -w], (self._rows, self._cols)), shape=(self.n, self.n))
-                blocks[i, j] = C.T @ (H @ C)
-
-        def pulled(weights):  # J^T weights: C^T D^T (weights * drho_i), in the T layout 12 j + 4 i + b
-            v = np.stack([C.T @ (self._incidence.T @ (weights * drho[:, i])) for i in range(3)])
-            return v.reshape(3, m, 4).transpose(1, 0, 2).reshape(-1)
-
-        # J^T P^T diag(d) P J = J^T diag(d) J - va vd^T - vd va^T + (sum d) va va^T
-        va, vd = pulled(a), pulled(dw)
-        A = self.coefficient * (_assemble(blocks, m) - np.outer(va, vd) - np.outer(vd, va)
-                                + dw.sum() * np.outer(va, va))
-        return 0.5 * (A + A.T)
+        return self.term_vertex_blocks(X).subspace(basis, m)

@@ -175,3 +175,32 @@ def test_prior_does_not_change_a_moderately_stretched_registration():
     errors = {w: mm.register((V, F), (target, F), grid=16, modes=4, isometry_weight=w,
                              ground_truth=target).metrics["ground_truth_error"] for w in (0.0, 1e-4)}
     assert errors[1e-4] <= 1.2 * errors[0.0]
+
+
+def test_folded_blocks_give_the_same_normal_equations(lumpy_sphere, rng):
+    """The optimizer adds the prior's vertex blocks to Eq. (3)'s before the products with the
+    skinning matrix (and the landmarks' block after): the same matrix as adding the blocks
+    in the subspace."""
+    from morphmodes_vol.optimize.gauss_newton import subspace_normal_equations
+
+    V, F = lumpy_sphere
+    m = 3
+    W, _ = skinning_eigenmodes(V, F, m)
+    basis = LBSBasis(V, W)
+    inner = _energy_for(V, F, V * 1.1, resolution=8)
+    iso = IsometryEnergy(inner, V, F, weight=0.4, volume=1.5, tolerance=0.05)
+    both = LandmarkEnergy(iso, [3, 9], V[[3, 9]] + 0.1, weight=2.0, volume=1.0)
+    X = basis.deform(0.05 * rng.standard_normal((m, 3, 4)))
+    ev = both.evaluate(X)
+    plain = subspace_normal_equations(ev, basis, m, both.F, both.weights)
+    want = plain.A + both.normal_matrix(basis, m, X)
+    folded = subspace_normal_equations(ev, basis, m, both.F, both.weights, extra=both.vertex_blocks(X))
+    got = folded.A + both.normal_matrix(basis, m, X, folded=True)
+    np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12 * np.abs(want).max())
+    np.testing.assert_array_equal(folded.g, plain.g)
+    # without terms that have vertex blocks, nothing is folded
+    assert inner.evaluate(X) is not None and getattr(inner, "vertex_blocks", None) is None
+    only = LandmarkEnergy(inner, [3], V[[3]], weight=1.0, volume=1.0)
+    assert only.vertex_blocks(X) is None
+    np.testing.assert_array_equal(only.normal_matrix(basis, m, X, folded=True), only.normal_matrix(basis, m, X))
+    assert iso.normal_matrix(basis, m, X, folded=True) is None

@@ -258,10 +258,16 @@ class _LevenbergMarquardtStepper:
         basis, options = self.basis, self.options
         m = T.shape[0]
         n = basis.X0.shape[0]
-        model = subspace_normal_equations(current, basis, m, self.energy.F, self.energy.weights)
-        extra = getattr(self.energy, "normal_matrix", None)  # landmarks', the isometry prior's
-        if extra is not None:
-            model = NormalEquations(A=model.A + extra(basis, m, basis.deform(T)), g=model.g)
+        X = basis.deform(T)
+        # terms added to Eq. (3): the isometry prior's matrix in the vertices joins Eq. (3)'s
+        # before the products with the skinning matrix; the landmarks' block is added after
+        vertex_blocks = getattr(self.energy, "vertex_blocks", None)
+        model = subspace_normal_equations(current, basis, m, self.energy.F, self.energy.weights,
+                                          extra=vertex_blocks(X) if vertex_blocks is not None else None)
+        extra = getattr(self.energy, "normal_matrix", None)
+        A = extra(basis, m, X, folded=True) if extra is not None else None
+        if A is not None:
+            model = NormalEquations(A=model.A + A, g=model.g)
         for _ in range(options.max_backtracks):
             d = lm_solve(model, self.metric, self.damping)
             rms = float(np.sqrt(max(d @ self.metric @ d, 0.0) / n))  # >= 0 up to rounding

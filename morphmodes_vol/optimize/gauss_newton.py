@@ -33,7 +33,8 @@ import scipy.sparse as sp
 from ..eigenbasis.lbs import LBSBasis
 from ..energy import EnergyEvaluation
 
-__all__ = ["subspace_normal_equations", "subspace_metric", "lm_solve", "NormalEquations"]
+__all__ = ["subspace_normal_equations", "subspace_metric", "lm_solve", "NormalEquations",
+           "VertexBlocks"]
 
 
 @dataclass(frozen=True)
@@ -55,6 +56,35 @@ class NormalEquations:
     def predicted_decrease(self, d: np.ndarray) -> float:
         """``E - model(d) = -(2 g.d + d^T A d)`` for a flattened step ``d (12m,)``."""
         return float(-(2.0 * self.g @ d + d @ self.A @ d))
+
+
+@dataclass(frozen=True)
+class VertexBlocks:
+    """A term's Gauss-Newton matrix in the vertices, to be added to Eq. (3)'s before the
+    products with the skinning matrix (one set of products for both):
+    ``sum_(a, a') blocks[a, a']`` on the coordinate blocks ``(a, a')`` (``a <= a'``, each
+    ``(n, n)`` sparse, the ``(a', a)`` block its transpose) plus ``sum c (B^T u)(B^T v)^T``
+    over ``outer = [(c, u (n, 3), v (n, 3)), ...]`` (``B^T u`` the pulled-back vector).
+    """
+
+    blocks: dict
+    outer: list
+
+    def subspace(self, basis: LBSBasis, m: int) -> np.ndarray:
+        """The matrix alone in the first ``m`` modes, ``(12m, 12m)`` in the T layout."""
+        C = _skinning_matrix(basis, m)
+        A = _assemble({ab: C.T @ (H @ C) for ab, H in self.blocks.items()}, m)
+        return _symmetric(A + self._outer(basis, m))
+
+    def _outer(self, basis: LBSBasis, m: int) -> np.ndarray:
+        out = np.zeros((12 * m, 12 * m))
+        for c, u, v in self.outer:
+            out += c * np.outer(basis.pullback(u, m).reshape(-1), basis.pullback(v, m).reshape(-1))
+        return out
+
+
+def _symmetric(A: np.ndarray) -> np.ndarray:
+    return 0.5 * (A + A.T)
 
 
 def _skinning_matrix(basis: LBSBasis, m: int) -> np.ndarray:
@@ -96,6 +126,7 @@ def subspace_normal_equations(
     m: int,
     faces: np.ndarray,
     weights: np.ndarray,
+    extra: VertexBlocks | None = None,
 ) -> NormalEquations:
     """Gauss-Newton normal equations of Eq. (3) in the first ``m`` modes.
 
@@ -111,6 +142,10 @@ def subspace_normal_equations(
         Source triangles.
     weights : (k,) float
         Quadrature weights ``w_i``.
+    extra : VertexBlocks, optional
+        Another term's matrix in the vertices (the isometry prior's), added before the
+        products with the skinning matrix; ``g`` is the evaluation's, which holds its
+        gradient already.
 
     Returns
     -------
@@ -141,9 +176,13 @@ def subspace_normal_equations(
             S = np.stack([np.bincount(t, weights=wb[cd] * nn, minlength=nf) for cd in corner_pairs], 1)
             vals = np.concatenate([S.ravel(), S[:, off].ravel()])
             H = sp.coo_matrix((vals, (rows, cols)), shape=(n, n)).tocsr()
+            if extra is not None and (a, a2) in extra.blocks:
+                H = H + extra.blocks[a, a2]
             blocks[a, a2] = C.T @ (H @ C)
     A = _assemble(blocks, m)
-    A = 0.5 * (A + A.T)
+    if extra is not None:
+        A += extra._outer(basis, m)
+    A = _symmetric(A)
     g = 0.5 * basis.pullback(evaluation.gradient, m).reshape(-1)  # J_z^T W r = grad / 2
     return NormalEquations(A=A, g=g)
 
