@@ -39,6 +39,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .energy import AddedTerm
+from .metrics import triangle_areas
 from .optimize.gauss_newton import VertexBlocks
 
 __all__ = ["IsometryEnergy", "edge_area_shares", "log_stretch_variance"]
@@ -72,7 +73,7 @@ def edge_area_shares(V0, F) -> tuple[np.ndarray, np.ndarray]:
     F = np.asarray(F, dtype=np.int64)
     e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
     edges, inverse = np.unique(np.sort(e, axis=1), axis=0, return_inverse=True)
-    area = 0.5 * np.linalg.norm(np.cross(V0[F[:, 1]] - V0[F[:, 0]], V0[F[:, 2]] - V0[F[:, 0]]), axis=1)
+    area = triangle_areas(V0, F)
     share = np.bincount(inverse.ravel(), weights=np.tile(area / 3.0, 3), minlength=len(edges))
     length = np.linalg.norm(V0[edges[:, 0]] - V0[edges[:, 1]], axis=1)
     keep = (length > 0) & (share > 0)

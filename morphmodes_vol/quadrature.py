@@ -113,9 +113,8 @@ class BandEnergy:
         ``grid.points()``, when the caller already holds it (not copied).
 
     Counters: ``evaluations``; ``partial_evaluations``, those after a refresh that queried
-    only the points new to the band (:meth:`evaluate`); ``points_queried`` and
-    ``points_evaluated``, the points sent to the mesh queries and the points the
-    evaluations summed over; ``refreshes``.
+    only the points new to the band (:meth:`evaluate`); ``points_queried``, the points sent
+    to the mesh queries; ``refreshes``.
     """
 
     def __init__(self, F, grid: Grid, g_nodes, sample_target, band: float, factor: int,
@@ -138,7 +137,6 @@ class BandEnergy:
         self.evaluations = 0
         self.partial_evaluations = 0
         self.points_queried = 0
-        self.points_evaluated = 0
         self.seconds = 0.0
         self.refreshes = 0
 
@@ -193,7 +191,6 @@ class BandEnergy:
         self.evaluations += 1
         self.partial_evaluations += known is not None
         self.points_queried += self._inner.points_queried
-        self.points_evaluated += len(self._ids)
         self._inner.points_queried = 0
         self.seconds += self._inner.seconds
         self._inner.seconds = 0.0
