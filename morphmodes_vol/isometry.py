@@ -40,7 +40,7 @@ import scipy.sparse as sp
 
 from .energy import AddedTerm
 from .metrics import triangle_areas
-from .optimize.gauss_newton import VertexBlocks
+from .optimize.gauss_newton import SparsePattern, VertexBlocks
 
 __all__ = ["IsometryEnergy", "edge_area_shares", "log_stretch_variance"]
 
@@ -145,7 +145,7 @@ class IsometryEnergy(AddedTerm):
         e = len(self.edges)
         p, q = self.edges[:, 0], self.edges[:, 1]
         # pattern of D^T diag(w) D (D the edge-vertex incidence): a weighted graph Laplacian
-        self._rows, self._cols = np.r_[p, q, p, q], np.r_[p, q, q, p]
+        self._pattern = SparsePattern(np.r_[p, q, p, q], np.r_[p, q, q, p], self.n)
         self._incidence = sp.csr_matrix((np.r_[np.ones(e), -np.ones(e)], (np.r_[np.arange(e), np.arange(e)],
                                                                            np.r_[p, q])), shape=(e, self.n))
 
@@ -183,8 +183,7 @@ class IsometryEnergy(AddedTerm):
         for i in range(3):
             for j in range(i, 3):
                 w = c * dw * drho[:, i] * drho[:, j]
-                blocks[i, j] = sp.csr_matrix((np.r_[w, w, -w, -w], (self._rows, self._cols)),
-                                             shape=(self.n, self.n))
+                blocks[i, j] = self._pattern.matrix(np.r_[w, w, -w, -w])
 
         def vertex(weights):  # D^T (weights * drho), (n, 3): J^T weights before B^T
             return np.stack([self._incidence.T @ (weights * drho[:, i]) for i in range(3)], axis=1)

@@ -31,7 +31,8 @@ from ..eigenbasis.lbs import LBSBasis
 from ..energy import EnergyEvaluation, SDFEnergy
 from ..errors import OptionError
 from ..options import OPTIMIZERS, PRECONDITIONERS, RegistrationOptions
-from .gauss_newton import NormalEquations, lm_solve, subspace_metric, subspace_normal_equations
+from .gauss_newton import (NormalEquations, face_corner_pattern, lm_solve, subspace_metric,
+                           subspace_normal_equations)
 from .linesearch import armijo_backtracking
 
 __all__ = ["optimize_adaptive", "OptimizationHistory", "ProgressEvent", "Status"]
@@ -242,6 +243,7 @@ class _LevenbergMarquardtStepper:
         self.damping = options.lm_damping
         self.metric: np.ndarray | None = None
         self.nu = 2.0
+        self.pattern = face_corner_pattern(energy.F, basis.X0.shape[0])  # sorted once per run
 
     def start_stage(self, m: int) -> None:
         # the last stage may have a cap of its own (one step per mode, the last until it stalls)
@@ -263,7 +265,8 @@ class _LevenbergMarquardtStepper:
         # before the products with the skinning matrix; the landmarks' block is added after
         vertex_blocks = getattr(self.energy, "vertex_blocks", None)
         model = subspace_normal_equations(current, basis, m, self.energy.F, self.energy.weights,
-                                          extra=vertex_blocks(X) if vertex_blocks is not None else None)
+                                          extra=vertex_blocks(X) if vertex_blocks is not None else None,
+                                          pattern=self.pattern)
         extra = getattr(self.energy, "normal_matrix", None)
         A = extra(basis, m, X, folded=True) if extra is not None else None
         if A is not None:

@@ -34,7 +34,80 @@ from ..eigenbasis.lbs import LBSBasis
 from ..energy import EnergyEvaluation
 
 __all__ = ["subspace_normal_equations", "subspace_metric", "lm_solve", "NormalEquations",
-           "VertexBlocks"]
+           "VertexBlocks", "SparsePattern", "face_corner_pattern"]
+
+
+class SparsePattern:
+    """The structure of an ``(n, n)`` sparse matrix that is a sum of values at fixed
+    coordinates ``(rows[j], cols[j])``, sorted once: :meth:`matrix` then fills it with one
+    ``bincount`` (scipy's coordinate-to-CSR conversion sorts again at every call).
+
+    Parameters
+    ----------
+    rows, cols : (p,) int
+        Coordinates of the values :meth:`matrix` takes, repeats allowed (they add up).
+    n : int
+        The matrix is ``(n, n)``.
+
+    Examples
+    --------
+    >>> P = SparsePattern(np.array([0, 1, 0]), np.array([1, 1, 1]), 2)
+    >>> P.matrix(np.array([1.0, 2.0, 3.0])).toarray()
+    array([[0., 4.],
+           [0., 2.]])
+    """
+
+    def __init__(self, rows: np.ndarray, cols: np.ndarray, n: int):
+        rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
+        if rows.shape != cols.shape or rows.ndim != 1:
+            raise ValueError(f"rows and cols must be two (p,) arrays, got {rows.shape} and {cols.shape}")
+        if rows.size and (min(rows.min(), cols.min()) < 0 or max(rows.max(), cols.max()) >= n):
+            raise ValueError(f"coordinates must lie in [0, {n})")
+        keys, self._slot = np.unique(rows * n + cols, return_inverse=True)
+        self._slot = self._slot.reshape(-1)
+        self.n, self.nnz = int(n), keys.size
+        self.indices = (keys % n).astype(np.int32)
+        self.indptr = np.zeros(n + 1, dtype=np.int32)
+        np.cumsum(np.bincount(keys // n, minlength=n), out=self.indptr[1:])
+
+    def matrix(self, values: np.ndarray) -> sp.csr_matrix:
+        """The ``(n, n)`` CSR matrix with ``values (p,)`` summed at their coordinates, in
+        canonical form (sorted indices, no repeats)."""
+        data = np.bincount(self._slot, weights=values, minlength=self.nnz)
+        return self._with(data)
+
+    def _with(self, data: np.ndarray) -> sp.csr_matrix:
+        M = sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n, self.n), copy=False)
+        M.has_sorted_indices = True
+        M.has_canonical_format = True
+        return M
+
+    def add(self, M: sp.csr_matrix, other) -> sp.csr_matrix:
+        """``M + other`` for ``M`` from :meth:`matrix`: the data arrays added when ``other``
+        is a CSR matrix of the same structure, scipy's sum otherwise."""
+        if (sp.isspmatrix_csr(other) and other.shape == M.shape and other.nnz == self.nnz
+                and np.array_equal(other.indptr, self.indptr)
+                and np.array_equal(other.indices, self.indices)):
+            return self._with(M.data + other.data)
+        return M + other
+
+
+_CORNER_PAIRS = [(c, d) for c in range(3) for d in range(c, 3)]
+_OFF = np.array([c != d for c, d in _CORNER_PAIRS])
+
+
+def face_corner_pattern(faces: np.ndarray, n: int) -> SparsePattern:
+    """The pattern of ``P^T diag(.) P`` (``P`` a closest-point interpolation matrix on the
+    triangles ``faces (f, 3)``): every pair of corners of a triangle, both ways, the vertex
+    adjacency of the mesh with its diagonal. The values :func:`subspace_normal_equations`
+    gives it are the per-face sums ``S (f, 6)`` of the corner pairs ``(c, d)``, ``c <= d``,
+    flattened, then the off-diagonal ones again for ``(d, c)``."""
+    F = np.asarray(faces, dtype=np.int64)
+    first = F[:, [c for c, _ in _CORNER_PAIRS]]
+    second = F[:, [d for _, d in _CORNER_PAIRS]]
+    rows = np.concatenate([first.ravel(), second[:, _OFF].ravel()])
+    cols = np.concatenate([second.ravel(), first[:, _OFF].ravel()])
+    return SparsePattern(rows, cols, n)
 
 
 @dataclass(frozen=True)
@@ -127,6 +200,7 @@ def subspace_normal_equations(
     faces: np.ndarray,
     weights: np.ndarray,
     extra: VertexBlocks | None = None,
+    pattern: SparsePattern | None = None,
 ) -> NormalEquations:
     """Gauss-Newton normal equations of Eq. (3) in the first ``m`` modes.
 
@@ -146,6 +220,9 @@ def subspace_normal_equations(
         Another term's matrix in the vertices (the isometry prior's), added before the
         products with the skinning matrix; ``g`` is the evaluation's, which holds its
         gradient already.
+    pattern : SparsePattern, optional
+        ``face_corner_pattern(faces, n)``, built once by a caller that assembles many
+        normal equations on one mesh (built here otherwise).
 
     Returns
     -------
@@ -154,30 +231,24 @@ def subspace_normal_equations(
     if evaluation.closest_faces is None:
         raise ValueError("the evaluation carries no correspondences (closest_faces is None)")
     n = basis.X0.shape[0]
-    F = np.asarray(faces, dtype=np.int64)
     t = evaluation.closest_faces
-    nf = F.shape[0]
+    nf = len(faces)
+    if pattern is None:
+        pattern = face_corner_pattern(faces, n)
     b, N = evaluation.barycentrics, evaluation.normal
     # per closest face t: S_t[c, d, a, a'] = sum_{i: t_i = t} w_i b_ic b_id n_ia n_ia', the
     # points' contributions gathered by face first (k can be 100x the face count)
-    corner_pairs = [(c, d) for c in range(3) for d in range(c, 3)]
-    wb = {cd: weights * b[:, cd[0]] * b[:, cd[1]] for cd in corner_pairs}
+    wb = {cd: weights * b[:, cd[0]] * b[:, cd[1]] for cd in _CORNER_PAIRS}
     C = _skinning_matrix(basis, m)
-    # each off-diagonal corner pair (c, d) also stands for (d, c)
-    first = F[:, [c for c, _ in corner_pairs]]
-    second = F[:, [d for _, d in corner_pairs]]
-    off = np.array([c != d for c, d in corner_pairs])
-    rows = np.concatenate([first.ravel(), second[:, off].ravel()])
-    cols = np.concatenate([second.ravel(), first[:, off].ravel()])
     blocks = {}
     for a in range(3):
         for a2 in range(a, 3):
             nn = N[:, a] * N[:, a2]
-            S = np.stack([np.bincount(t, weights=wb[cd] * nn, minlength=nf) for cd in corner_pairs], 1)
-            vals = np.concatenate([S.ravel(), S[:, off].ravel()])
-            H = sp.coo_matrix((vals, (rows, cols)), shape=(n, n)).tocsr()
+            S = np.stack([np.bincount(t, weights=wb[cd] * nn, minlength=nf) for cd in _CORNER_PAIRS], 1)
+            # each off-diagonal corner pair (c, d) also stands for (d, c)
+            H = pattern.matrix(np.concatenate([S.ravel(), S[:, _OFF].ravel()]))
             if extra is not None and (a, a2) in extra.blocks:
-                H = H + extra.blocks[a, a2]
+                H = pattern.add(H, extra.blocks[a, a2])
             blocks[a, a2] = C.T @ (H @ C)
     A = _assemble(blocks, m)
     if extra is not None:
