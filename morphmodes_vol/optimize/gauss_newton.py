@@ -20,7 +20,8 @@ points): with ``P`` the ``k x n`` closest-point interpolation matrix (barycentri
 ``C = [w_j(x0_i) [x0_i 1]]`` the ``n x 4m`` skinning matrix, its ``(a, a')`` coordinate block
 is ``C^T P^T diag(w n_a n_a') P C``. ``P^T diag(.) P`` is gathered per closest triangle
 (``k`` is often 100x the triangle count) and scattered to an ``n x n`` sparse matrix with the
-mesh's adjacency pattern; then six small dense products.
+mesh's adjacency pattern (:class:`SparsePattern`, sorted once); then six small dense
+products.
 """
 
 from __future__ import annotations
