@@ -51,12 +51,9 @@ class RegistrationOptions:
     band_cells : float
         Half width of the fine band, in grid spacings.
     block_factor : int
-        Nodes per block side away from the surfaces (``"band"`` quadrature).
-    sub_block_factor : int or None
-        Nodes per side of the intermediate blocks of the ``"band"`` quadrature: a near block
-        is cut into blocks of ``sub_block_factor^3`` nodes, and those that are far from both
-        surfaces contribute their centre only (:mod:`morphmodes_vol.quadrature`). Must
-        divide ``block_factor``. ``None``: every node of a near block is a quadrature point.
+        Nodes per block side away from the surfaces (``"band"`` quadrature). ``2`` (default):
+        with ``4`` (the default until 2026-11-30) the demo pair ended 7-20x farther from its
+        known answer (docs/method.md, "Band quadrature").
     band_margin_cells : float
         Vertex motion, in grid spacings, after which the band is recomputed.
     padding : float
@@ -196,8 +193,7 @@ class RegistrationOptions:
     target_grid: int | None = None
     quadrature: Quadrature = "band"
     band_cells: float = 2.0
-    block_factor: int = 4
-    sub_block_factor: int | None = None
+    block_factor: int = 2
     band_margin_cells: float = 4.0
     padding: float = 0.1
     coarse_modes: int = 0
@@ -268,11 +264,6 @@ class RegistrationOptions:
         need(self.band_cells > 0, "band_cells", "a positive float")
         need(_is_int(self.block_factor) and 1 <= self.block_factor <= 16, "block_factor",
              "an integer in [1, 16]")
-        need(self.sub_block_factor is None
-             or (_is_int(self.sub_block_factor) and 1 <= self.sub_block_factor < self.block_factor
-                 and self.block_factor % self.sub_block_factor == 0),
-             "sub_block_factor", f"None or an integer in [1, block_factor={self.block_factor}) "
-             "that divides block_factor")
         need(self.band_margin_cells > 0, "band_margin_cells", "a positive float")
         need(0.0 <= self.padding <= 2.0, "padding", "a float in [0, 2]")
         need(_is_int(self.modes) and 1 <= self.modes <= 500, "modes", "an integer in [1, 500]")

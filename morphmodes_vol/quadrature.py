@@ -13,12 +13,7 @@ nodes elsewhere:
   how far the source may move before the classification is refreshed); likewise for ``g``;
 - a near block contributes its nodes with weight ``h^3`` (Eq. 3 unchanged there); a far
   block contributes its centre with the weight of all its nodes, ``count * h^3`` (the
-  midpoint rule on the block);
-- optionally (``sub_factor``) the same test is applied once more inside the near blocks, to
-  sub-blocks of ``t^3`` nodes (``t`` dividing ``s``): only the near sub-blocks contribute
-  their nodes, the others their centre. With ``s = 4``, most nodes of a near block are
-  several spacings away from both surfaces (the block test reaches ``band + margin + 2.6 h``
-  from a block's centre), and ``t = 2`` cuts the points by about a quarter on the lion.
+  midpoint rule on the block).
 
 The classification depends on where the source is, so it is refreshed whenever some vertex
 has moved by more than ``margin`` since the last refresh (:meth:`BandEnergy.refresh`), which
@@ -112,9 +107,6 @@ class BandEnergy:
         Nodes per block side away from the surfaces (``s``).
     margin : float
         Vertex motion allowed before the band is recomputed.
-    sub_factor : int, optional
-        Nodes per sub-block side inside the near blocks (must divide ``factor``); ``None``:
-        every node of a near block is a quadrature point.
     sign, samples
         As in :class:`SDFEnergy`.
     points : (N, 3) float, optional
@@ -127,7 +119,7 @@ class BandEnergy:
 
     def __init__(self, F, grid: Grid, g_nodes, sample_target, band: float, factor: int,
                  margin: float, sign: SignMethod = "raycast", samples: int = 1,
-                 points: np.ndarray | None = None, sub_factor: int | None = None):
+                 points: np.ndarray | None = None):
         self.F = np.ascontiguousarray(F, dtype=np.int64)
         self.grid = grid
         self.points = grid.points() if points is None else points
@@ -138,22 +130,9 @@ class BandEnergy:
         self.sign, self.samples = sign, samples
         reach = self.band + self.blocks.radius
         self._near_target = np.abs(self.g_centers) < reach + grid.spacing  # trilinear slack
-        self.sub: GridBlocks | None = None
-        if sub_factor is not None:
-            if not (1 <= sub_factor < factor and factor % sub_factor == 0):
-                raise ValueError(f"sub_factor={sub_factor} must divide factor={factor} and be smaller")
-            self.sub = GridBlocks.of(grid, sub_factor, self.points)
-            self._parent = np.empty(self.sub.counts.size, dtype=np.int64)  # each sub-block's block
-            self._parent[self.sub.block_of_node] = self.blocks.block_of_node
-            self._sub_g = np.asarray(sample_target(self.sub.centers), dtype=np.float64)
-            self._sub_near_target = np.abs(self._sub_g) < self.band + self.sub.radius + grid.spacing
-        sub = self.sub or GridBlocks(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int64), 0.0)
-        self._sub_centers, self._sub_counts = sub.centers, sub.counts
-        if self.sub is None:
-            self._sub_g = np.zeros(0)
         self._anchor: np.ndarray | None = None
         self._inner: SDFEnergy | None = None
-        self._ids: np.ndarray | None = None  # node; N + block (far centres); N + B + sub-block
+        self._ids: np.ndarray | None = None  # each point's node, or N + its block (far centres)
         self._last = None  # (X, ids, evaluation, signed distances) of the last evaluation
         self.evaluations = 0
         self.partial_evaluations = 0
@@ -179,32 +158,19 @@ class BandEnergy:
         t0 = time.perf_counter()
         dist = closest_points(X, self.F, self.blocks.centers).distance
         near = self._near_target | (dist < self.band + self.blocks.radius + self.margin)
+        fine = near[self.blocks.block_of_node]
         far = np.flatnonzero(~near)
-        mid = np.zeros(0, dtype=np.int64)  # sub-blocks of near blocks that contribute their centre
-        if self.sub is None:
-            fine = near[self.blocks.block_of_node]
-        else:
-            candidates = np.flatnonzero(near[self._parent])
-            d = closest_points(X, self.F, self.sub.centers[candidates]).distance
-            keep = self._sub_near_target[candidates] | (d < self.band + self.sub.radius + self.margin)
-            sub_fine = np.zeros(self.sub.counts.size, dtype=bool)
-            sub_fine[candidates[keep]] = True
-            fine = sub_fine[self.sub.block_of_node]
-            mid = candidates[~keep]
         h3 = self.grid.cell_volume
-        N, nb = self.points.shape[0], self.blocks.counts.size
-        # points in ascending id order: fine nodes, far block centres, sub-block centres
-        Q = np.concatenate([self.points[fine], self.blocks.centers[far], self._sub_centers[mid]])
-        g = np.concatenate([self.g_nodes[fine], self.g_centers[far], self._sub_g[mid]])
-        w = np.concatenate([np.full(int(fine.sum()), h3), self.blocks.counts[far] * h3,
-                            self._sub_counts[mid] * h3])
+        Q = np.concatenate([self.points[fine], self.blocks.centers[far]])
+        g = np.concatenate([self.g_nodes[fine], self.g_centers[far]])
+        w = np.concatenate([np.full(int(fine.sum()), h3), self.blocks.counts[far] * h3])
         self._inner = SDFEnergy(self.F, Q, g, w, sign=self.sign, samples=self.samples)
-        self._ids = np.concatenate([np.flatnonzero(fine), N + far, N + nb + mid])
+        self._ids = np.concatenate([np.flatnonzero(fine), self.points.shape[0] + far])
         self._anchor = np.array(X, copy=True)
         self.refreshes += 1
         self.seconds += time.perf_counter() - t0
-        log.debug("band quadrature: %d fine nodes + %d block centres + %d sub-block centres "
-                  "(of %d nodes)", int(fine.sum()), far.size, mid.size, N)
+        log.debug("band quadrature: %d fine nodes + %d block centres (of %d nodes)",
+                  int(fine.sum()), far.size, self.points.shape[0])
         return True
 
     def start_stage(self, m: int) -> None:
@@ -239,7 +205,7 @@ class BandEnergy:
         X_last, ids_last, ev, value_last = self._last
         if ids_last is self._ids or X_last.shape != X.shape or not np.array_equal(X_last, X):
             return None
-        # both id lists are ascending (fine nodes, N + far blocks, N + blocks + sub-blocks)
+        # both id lists are ascending (fine nodes, then N + far blocks)
         pos = np.minimum(np.searchsorted(ids_last, self._ids), len(ids_last) - 1)
         mask = ids_last[pos] == self._ids
         if not mask.any():

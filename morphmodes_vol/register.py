@@ -278,7 +278,6 @@ class Registration:
             return BandEnergy(
                 self.source_sdf_faces, grid, g, self.sample_target,
                 band=o.band_cells * h, factor=o.block_factor, margin=o.band_margin_cells * h,
-                sub_factor=o.sub_block_factor,
                 sign=o.source_sign, samples=o.occupancy_samples, points=Q,
             )
         return SDFEnergy(self.source_sdf_faces, Q, g, grid.cell_volume, sign=o.source_sign,

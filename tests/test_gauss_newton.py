@@ -86,7 +86,7 @@ def test_grid_blocks_partition_the_nodes():
     assert np.max(np.linalg.norm(P - b.centers[b.block_of_node], axis=1)) <= b.radius + 1e-12
 
 
-def _band_pair(V, F, target, resolution=40, sub_factor=None):
+def _band_pair(V, F, target, resolution=40):
     lo = np.minimum(V.min(0), target.min(0))
     hi = np.maximum(V.max(0), target.max(0))
     grid = Grid.covering(lo, hi, resolution, padding=0.3)
@@ -94,16 +94,14 @@ def _band_pair(V, F, target, resolution=40, sub_factor=None):
     sample = lambda P: signed_distance(target, F, P).value  # noqa: E731 (exact target SDF)
     full = SDFEnergy(F, grid.points(), gfield, grid.cell_volume)
     h = grid.spacing
-    band = BandEnergy(F, grid, gfield, sample, band=3 * h, factor=4, margin=2 * h,
-                      sub_factor=sub_factor)
+    band = BandEnergy(F, grid, gfield, sample, band=3 * h, factor=4, margin=2 * h)
     return full, band, grid
 
 
-@pytest.mark.parametrize("sub", [None, 2])
-def test_band_quadrature_approximates_the_full_grid(lumpy_sphere, sub):
+def test_band_quadrature_approximates_the_full_grid(lumpy_sphere):
     V, F = lumpy_sphere
     target = V * [1.15, 0.9, 1.0] + [0.05, 0.0, -0.03]
-    full, band, grid = _band_pair(V, F, target, sub_factor=sub)
+    full, band, grid = _band_pair(V, F, target)
     ef, eb = full.evaluate(V), band.evaluate(V)
     # the weights still cover the whole box, with far fewer points
     assert band.weights.sum() == pytest.approx(grid.size * grid.cell_volume)
@@ -115,10 +113,9 @@ def test_band_quadrature_approximates_the_full_grid(lumpy_sphere, sub):
     assert cos > 0.98
 
 
-@pytest.mark.parametrize("sub", [None, 2])
-def test_band_keeps_every_node_near_the_moved_source_until_refreshed(lumpy_sphere, sub):
+def test_band_keeps_every_node_near_the_moved_source_until_refreshed(lumpy_sphere):
     V, F = lumpy_sphere
-    full, band, grid = _band_pair(V, F, V * 1.1, sub_factor=sub)
+    full, band, grid = _band_pair(V, F, V * 1.1)
     band.evaluate(V)
     assert not band.refresh(V + 0.5 * band.margin)  # within the margin: same quadrature
     moved = V + [band.margin * 0.9, 0.0, 0.0]
@@ -129,13 +126,12 @@ def test_band_keeps_every_node_near_the_moved_source_until_refreshed(lumpy_spher
     assert band.refresh(V + [3 * band.margin, 0.0, 0.0])
 
 
-@pytest.mark.parametrize("sub", [None, 2])
-def test_evaluation_after_a_refresh_reuses_shared_points_with_identical_results(lumpy_sphere, sub):
+def test_evaluation_after_a_refresh_reuses_shared_points_with_identical_results(lumpy_sphere):
     """The optimizer's sequence: an evaluation, a refresh at the same vertices, the evaluation
     there on the new band. The second queries only the points new to the band, and equals
     (bit for bit) a fresh band quadrature's full evaluation at those vertices."""
     V, F = lumpy_sphere
-    _, band, _ = _band_pair(V, F, V * 1.1, sub_factor=sub)
+    _, band, _ = _band_pair(V, F, V * 1.1)
     band.evaluate(V)
     moved = V + [3 * band.margin, 0.0, 0.0]
     band.evaluate(moved)  # on the old band (a trial step)
@@ -144,7 +140,7 @@ def test_evaluation_after_a_refresh_reuses_shared_points_with_identical_results(
     got = band.evaluate(moved)
     new_points = band.points_queried - queried
     assert band.partial_evaluations == 1 and 0 < new_points < 0.9 * band.Q.shape[0]
-    _, fresh, _ = _band_pair(V, F, V * 1.1, sub_factor=sub)
+    _, fresh, _ = _band_pair(V, F, V * 1.1)
     fresh.refresh(moved, force=True)
     want = fresh.evaluate(moved)
     assert fresh.partial_evaluations == 0 and fresh.points_queried == fresh.Q.shape[0]
@@ -155,27 +151,6 @@ def test_evaluation_after_a_refresh_reuses_shared_points_with_identical_results(
     # another state on the same band: a full evaluation again
     band.evaluate(moved * 1.01)
     assert band.partial_evaluations == 1
-
-
-def test_sub_blocks_replace_nodes_far_from_both_surfaces_by_their_centres(lumpy_sphere):
-    """Sub-blocks inside the near blocks: fewer points, the same total weight, and the
-    points they drop are all farther than the band from both surfaces."""
-    V, F = lumpy_sphere
-    target = V * [1.15, 0.9, 1.0]
-    full, one, grid = _band_pair(V, F, target)
-    _, two, _ = _band_pair(V, F, target, sub_factor=2)
-    e1, e2, ef = one.evaluate(V), two.evaluate(V), full.evaluate(V)
-    assert two.Q.shape[0] < 0.9 * one.Q.shape[0]
-    assert two.weights.sum() == pytest.approx(one.weights.sum())
-    assert e2.energy == pytest.approx(ef.energy, rel=0.05)
-    dropped = np.array(sorted({tuple(q) for q in np.round(one.Q[one.weights == grid.cell_volume], 9)}
-                              - {tuple(q) for q in np.round(two.Q, 9)}))
-    assert len(dropped) > 0
-    f = np.abs(signed_distance(V, F, dropped).value)
-    g = np.abs(signed_distance(target, F, dropped).value)
-    assert np.all(np.minimum(f, g) > two.band)
-    with pytest.raises(ValueError, match="divide"):
-        _band_pair(V, F, target, resolution=12, sub_factor=3)
 
 
 def test_known_queries_give_the_full_evaluation(lumpy_sphere):

@@ -31,8 +31,7 @@ def test_stall_schedule_decays_geometrically():
 @pytest.mark.parametrize(
     "field, value",
     [("grid", 2), ("grid", 64.0), ("modes", 0), ("preconditioner", "newton"), ("backtrack", 1.0),
-     ("stall_end", 1.0), ("occupancy_samples", 2), ("seed", -1), ("padding", -0.1),
-     ("sub_block_factor", 3), ("sub_block_factor", 4)],
+     ("stall_end", 1.0), ("occupancy_samples", 2), ("seed", -1), ("padding", -0.1)],
 )
 def test_options_reject_invalid_values(field, value):
     with pytest.raises(OptionError, match=field):
