@@ -245,3 +245,32 @@ def test_band_quadrature_reaches_the_full_grid_on_the_demo_pair():
         err[quadrature] = ground_truth_error(r.vertices, T)
     assert err["full"] < 0.004, err
     assert err["band"] < 2.0 * err["full"] + 1e-3, err
+
+
+def test_sparse_pattern_fills_like_scipy_and_adds_by_data_arrays(lumpy_sphere):
+    """Identity: a SparsePattern's matrix is scipy's COO-to-CSR sum of the same triplets, and
+    the isometry prior's pattern has the structure of the face-corner one (so the blocks add
+    by their data arrays)."""
+    from morphmodes_vol.isometry import IsometryEnergy
+    from morphmodes_vol.optimize.gauss_newton import SparsePattern, face_corner_pattern
+
+    rng = np.random.default_rng(3)
+    rows, cols, vals = rng.integers(0, 7, 40), rng.integers(0, 7, 40), rng.normal(size=40)
+    P = SparsePattern(rows, cols, 7)
+    M = P.matrix(vals)
+    np.testing.assert_allclose(M.toarray(), sp.coo_matrix((vals, (rows, cols)), shape=(7, 7)).toarray(),
+                               rtol=1e-14, atol=1e-14)
+    assert M.has_canonical_format and M.nnz == len({(r, c) for r, c in zip(rows, cols)})
+    other = sp.random(7, 7, density=0.3, random_state=1, format="csr")  # another structure
+    np.testing.assert_allclose(P.add(M, other).toarray(), M.toarray() + other.toarray(), atol=1e-14)
+    with pytest.raises(ValueError, match="lie in"):
+        SparsePattern([0, 7], [1, 1], 7)
+
+    V, F = lumpy_sphere
+    corners = face_corner_pattern(F, len(V))
+    iso = IsometryEnergy(SDFEnergy(F, np.zeros((1, 3)), np.zeros(1), 1.0), V, F, 1.0, 1.0)
+    block = iso.term_vertex_blocks(V * [1.2, 1.0, 0.9]).blocks[0, 1]
+    np.testing.assert_array_equal(block.indptr, corners.indptr)
+    np.testing.assert_array_equal(block.indices, corners.indices)
+    H = corners.matrix(rng.normal(size=len(corners._slot)))
+    np.testing.assert_allclose(corners.add(H, block).toarray(), H.toarray() + block.toarray(), atol=1e-14)
