@@ -240,7 +240,6 @@ def subspace_normal_equations(
     # per closest face t: S_t[c, d, a, a'] = sum_{i: t_i = t} w_i b_ic b_id n_ia n_ia', the
     # points' contributions gathered by face first (k can be 100x the face count)
     wb = {cd: weights * b[:, cd[0]] * b[:, cd[1]] for cd in _CORNER_PAIRS}
-    C = _skinning_matrix(basis, m)
     blocks = {}
     for a in range(3):
         for a2 in range(a, 3):
@@ -250,11 +249,9 @@ def subspace_normal_equations(
             H = pattern.matrix(np.concatenate([S.ravel(), S[:, _OFF].ravel()]))
             if extra is not None and (a, a2) in extra.blocks:
                 H = pattern.add(H, extra.blocks[a, a2])
-            blocks[a, a2] = C.T @ (H @ C)
-    A = _assemble(blocks, m)
-    if extra is not None:
-        A += extra._outer(basis, m)
-    A = _symmetric(A)
+            blocks[a, a2] = H
+    # Eq. (3)'s matrix in the vertices, with the other term's folded in, to the subspace
+    A = VertexBlocks(blocks=blocks, outer=extra.outer if extra is not None else []).subspace(basis, m)
     g = 0.5 * basis.pullback(evaluation.gradient, m).reshape(-1)  # J_z^T W r = grad / 2
     return NormalEquations(A=A, g=g)
 
