@@ -1,10 +1,13 @@
 """Stage 3, optimize: Algorithm 1 (adaptive subspace gradient descent) and its line search."""
 
-from .adaptive import AdaptiveResult, OptimizationHistory, ProgressEvent, optimize_adaptive
+from .adaptive import (AdaptiveResult, AdaptiveRun, OptimizationHistory, ProgressEvent, optimize_adaptive,
+                       single_threaded_blas)
 from .linesearch import LineSearchResult, armijo_backtracking
 
 __all__ = [
     "optimize_adaptive",
+    "AdaptiveRun",
+    "single_threaded_blas",
     "AdaptiveResult",
     "OptimizationHistory",
     "ProgressEvent",

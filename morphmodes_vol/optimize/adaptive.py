@@ -35,7 +35,7 @@ from .gauss_newton import (NormalEquations, face_corner_pattern, lm_solve, subsp
                            subspace_normal_equations)
 from .linesearch import armijo_backtracking
 
-__all__ = ["optimize_adaptive", "OptimizationHistory", "ProgressEvent", "Status"]
+__all__ = ["optimize_adaptive", "AdaptiveRun", "OptimizationHistory", "ProgressEvent", "Status"]
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +56,7 @@ class ProgressEvent:
     threshold: float
     evaluations: int
     elapsed: float
+    start: str = ""  # which start, when a registration runs several (``rest``, ``aligned``)
 
 
 @dataclass
@@ -341,80 +342,137 @@ def optimize_adaptive(
     Returns
     -------
     AdaptiveResult
+
+    See Also
+    --------
+    AdaptiveRun : the same run one stage at a time (several starts in lockstep).
     """
-    # The products here are small (at most n x 4m and 12m x 12m): a multithreaded BLAS only
-    # adds wake-up costs, which are pathological on a busy machine (0.23 s instead of
-    # 0.002 s for one 80 x 5000 x 80 product, measured with 2 cores under load).
-    with threadpool_limits(limits=1, user_api="blas"):
-        return _optimize_adaptive(energy, basis, options, progress, start)
+    with single_threaded_blas():
+        run = AdaptiveRun(energy, basis, options, progress, start)
+        while not run.done:
+            run.advance()
+        return run.result()
 
 
-def _optimize_adaptive(
-    energy: SDFEnergy,
-    basis: LBSBasis,
-    options: RegistrationOptions,
-    progress: Callable[[ProgressEvent], None] | None = None,
-    start: np.ndarray | None = None,
-) -> AdaptiveResult:
-    """The body of :func:`optimize_adaptive`."""
-    t0 = time.perf_counter()
-    m_max = min(options.modes, basis.max_modes)
-    history = OptimizationHistory()
-    try:
-        stepper = _STEPPERS[options.optimizer](energy, basis, options)
-    except KeyError:
-        raise OptionError(f"optimizer={options.optimizer!r}: expected one of {OPTIMIZERS}") from None
+def single_threaded_blas():
+    """Context in which BLAS runs on one thread.
 
-    m0 = min(options.initial_modes, m_max)  # 1 in Algorithm 1; m_max for a fixed subspace
-    T = np.zeros((m0 - 1, 3, 4))
-    if start is not None:
-        start = np.asarray(start, dtype=np.float64)
-        if start.ndim != 3 or start.shape[1:] != (3, 4):
-            raise ValueError(f"start must have shape (k, 3, 4), got {start.shape}")
-        k = min(start.shape[0], max(m_max, 1))
-        T = np.zeros((max(m0 - 1, k), 3, 4))
-        T[:k] = start[:k]
-    current = energy.evaluate(basis.deform(T))
-    initial = current
-    history.energy.append(current.energy)
-    iteration = 0
-    status: Status = "converged"
-    if not _finite(current):
-        log.warning("the energy at the rest pose is not finite: nothing to optimize")
-        m_max, status, T = 0, "rolled_back", np.zeros((1, 3, 4))
+    The products of Algorithm 1 are small (at most n x 4m and 12m x 12m): a multithreaded
+    BLAS only adds wake-up costs, which are pathological on a busy machine (0.23 s instead
+    of 0.002 s for one 80 x 5000 x 80 product, measured with 2 cores under load).
+    """
+    return threadpool_limits(limits=1, user_api="blas")
 
-    def report(modes: int, stage_iteration: int, step_rms: float, eps: float) -> None:
-        if progress is not None:
-            progress(
+
+class AdaptiveRun:
+    """Algorithm 1 from one start, advanced one stage (one mode) at a time.
+
+    :func:`optimize_adaptive` is ``AdaptiveRun(...)`` advanced until :attr:`done`;
+    :meth:`morphmodes_vol.Registration.run` advances two starts in lockstep so that it can
+    stop one early (``start_merge_distance``, ``start_strain_ratio``). Parameters as in
+    :func:`optimize_adaptive`; the constructor evaluates the energy at the start.
+
+    Attributes
+    ----------
+    T : (m, 3, 4) float64
+        Coefficients after the last completed stage (or at the start).
+    stage : int
+        Stages completed so far (the active modes when the next stage begins, minus one).
+    done : bool
+        Every stage is completed, or the run was cut (``max_iterations``, a fault).
+    """
+
+    def __init__(
+        self,
+        energy: SDFEnergy,
+        basis: LBSBasis,
+        options: RegistrationOptions,
+        progress: Callable[[ProgressEvent], None] | None = None,
+        start: np.ndarray | None = None,
+    ):
+        self.t0 = time.perf_counter()
+        self.energy, self.basis, self.options, self.progress = energy, basis, options, progress
+        self.m_max = min(options.modes, basis.max_modes)
+        self.history = OptimizationHistory()
+        try:
+            self.stepper = _STEPPERS[options.optimizer](energy, basis, options)
+        except KeyError:
+            raise OptionError(f"optimizer={options.optimizer!r}: expected one of {OPTIMIZERS}") from None
+
+        m0 = min(options.initial_modes, self.m_max)  # 1 in Algorithm 1; m_max for a fixed subspace
+        T = np.zeros((m0 - 1, 3, 4))
+        if start is not None:
+            start = np.asarray(start, dtype=np.float64)
+            if start.ndim != 3 or start.shape[1:] != (3, 4):
+                raise ValueError(f"start must have shape (k, 3, 4), got {start.shape}")
+            k = min(start.shape[0], max(self.m_max, 1))
+            T = np.zeros((max(m0 - 1, k), 3, 4))
+            T[:k] = start[:k]
+        self.T = T
+        self.current = energy.evaluate(basis.deform(T))
+        self.initial = self.current
+        self.history.energy.append(self.current.energy)
+        self.iteration = 0
+        self.status: Status = "converged"
+        self.stage = m0 - 1
+        self.done = False
+        if not _finite(self.current):
+            log.warning("the energy at the rest pose is not finite: nothing to optimize")
+            self.m_max, self.status, self.T = 0, "rolled_back", np.zeros((1, 3, 4))
+        self._check_done()
+
+    @property
+    def vertices(self) -> np.ndarray:
+        """``(n, 3)`` vertices at :attr:`T`."""
+        return self.basis.deform(self.T)
+
+    def _report(self, modes: int, stage_iteration: int, step_rms: float, eps: float) -> None:
+        if self.progress is not None:
+            self.progress(
                 ProgressEvent(
                     modes=modes,
-                    max_modes=m_max,
-                    iteration=iteration,
+                    max_modes=self.m_max,
+                    iteration=self.iteration,
                     stage_iteration=stage_iteration,
-                    energy=current.energy,
+                    energy=self.current.energy,
                     step_rms=step_rms,
                     threshold=eps,
-                    evaluations=energy.evaluations,
-                    elapsed=time.perf_counter() - t0,
+                    evaluations=self.energy.evaluations,
+                    elapsed=time.perf_counter() - self.t0,
                 )
             )
 
-    for stage in range(m0 - 1, m_max):
-        if iteration >= options.max_iterations:
-            status = "max_iterations"
-            break
-        m = stage + 1
+    def _check_done(self) -> None:
+        if self.done:
+            return
+        if self.status in ("max_iterations", "rolled_back"):
+            self.done = True
+        elif self.stage >= self.m_max:
+            self.done = True
+            self.status = "stage_cap" if "iteration_cap" in self.history.stage_ends else "converged"
+        elif self.iteration >= self.options.max_iterations:
+            self.done, self.status = True, "max_iterations"
+
+    def advance(self) -> None:
+        """Run the next stage: add a mode, take steps until the stage ends."""
+        if self.done:
+            return
+        energy, basis, options, stepper, history = (self.energy, self.basis, self.options,
+                                                    self.stepper, self.history)
+        T, current = self.T, self.current
+        m = self.stage + 1
         stage_t0, stage_evals = time.perf_counter(), energy.evaluations
         if T.shape[0] < m:
             T = np.concatenate([T, np.zeros((1, 3, 4))])  # z <- [z; 0_12]
-        eps = options.stall_threshold(stage)
+        eps = options.stall_threshold(self.stage)
         history.stage_starts.append(len(history.step_rms))
         energy.start_stage(m)  # e.g. a coarse-to-fine quadrature switches grids here
         stepper.start_stage(m)
         end: StageEnd = "iteration_cap"
-        report(m, 0, float("nan"), eps)
+        self.T, self.current = T, current
+        self._report(m, 0, float("nan"), eps)
         for stage_iteration in range(1, stepper.iterations_per_stage + 1):
-            if iteration >= options.max_iterations:
+            if self.iteration >= options.max_iterations:
                 end = "max_iterations"
                 break
             X = basis.deform(T)
@@ -431,44 +489,46 @@ def _optimize_adaptive(
                 break
             previous = current.energy
             T, current = out.T, out.evaluation
-            iteration += 1
+            self.T, self.current = T, current
+            self.iteration += 1
             history.energy.append(current.energy)
             history.step_rms.append(out.step_rms)
             history.modes.append(m)
-            report(m, stage_iteration, out.step_rms, eps)
+            self._report(m, stage_iteration, out.step_rms, eps)
             small_decrease = stepper.stall_decrease > 0 and (
                 previous - current.energy <= stepper.stall_decrease * previous)
             if out.step_rms < eps or small_decrease:
                 end = "stalled"
                 break
+        self.T, self.current = T, current
+        self.stage = m
         history.stage_ends.append(end)
         history.stage_coefficients.append(T.copy())
         history.stage_seconds.append(time.perf_counter() - stage_t0)
         history.stage_evaluations.append(energy.evaluations - stage_evals)
         log.info(
             "stage %d/%d ended (%s) after %d steps, energy %.6g, %d evaluations",
-            m, m_max, end, len(history.step_rms) - history.stage_starts[-1],
+            m, self.m_max, end, len(history.step_rms) - history.stage_starts[-1],
             current.energy, energy.evaluations,
         )
         if end == "max_iterations":
-            status = "max_iterations"
-            break
-        if end == "fault":  # T is still the last good (accepted) state
+            self.status = "max_iterations"
+        elif end == "fault":  # T is still the last good (accepted) state
             log.warning("non-finite energy or gradient in stage %d: rolled back to the last "
                         "accepted step (energy %.6g)", m, current.energy)
-            status = "rolled_back"
-            break
-    else:
-        if status != "rolled_back":
-            status = "stage_cap" if "iteration_cap" in history.stage_ends else "converged"
+            self.status = "rolled_back"
+        self._check_done()
 
-    history.evaluations = energy.evaluations
-    history.partial_evaluations = int(getattr(energy, "partial_evaluations", 0))
-    return AdaptiveResult(
-        T=T,
-        vertices=basis.deform(T),
-        final=current,
-        initial=initial,
-        history=history,
-        status=status,
-    )
+    def result(self) -> AdaptiveResult:
+        """The run's outcome so far (complete once :attr:`done`)."""
+        history = self.history
+        history.evaluations = self.energy.evaluations
+        history.partial_evaluations = int(getattr(self.energy, "partial_evaluations", 0))
+        return AdaptiveResult(
+            T=self.T,
+            vertices=self.basis.deform(self.T),
+            final=self.current,
+            initial=self.initial,
+            history=history,
+            status=self.status,
+        )
