@@ -36,10 +36,11 @@ class ProgressPrinter:
 
     def __call__(self, e) -> None:
         now = time.perf_counter()
-        new_stage = e.modes != self._modes
-        self._modes = e.modes
+        new_stage = (e.start, e.modes) != self._modes
+        self._modes = (e.start, e.modes)
         step = "-" if e.step_rms != e.step_rms else f"{e.step_rms:.1e}"  # NaN at a stage start
         line = (
+            (f"[{e.start}] " if e.start else "") +
             f"modes {e.modes}/{e.max_modes}  iter {e.iteration}  energy {e.energy:.4e}  "
             f"step {step} (stall {e.threshold:.1e})  evals {e.evaluations}  {e.elapsed:.1f}s"
         )

@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
@@ -27,7 +27,7 @@ from .metrics import edge_strain, ground_truth_error, shape_metrics
 from .options import RegistrationOptions
 from .quadrature import BandEnergy, CoarseToFine, every_other_node
 from .repair import sdf_faces
-from .optimize import OptimizationHistory, ProgressEvent, optimize_adaptive
+from .optimize import AdaptiveRun, OptimizationHistory, ProgressEvent, single_threaded_blas
 from .sdf import Grid, TargetSDF, build_target_sdf, closest_points, is_target_sdf_path, load_target_sdf
 from .stages import SourceEigenbasis, TargetField
 
@@ -309,8 +309,89 @@ class Registration:
         o = self.options
         if o.quadrature == "full" and o.coarse_modes == 0:
             return float(out.final.energy)
-        ev = self._with_terms(self.full_energy()).evaluate(out.vertices)
-        return float(ev.energy)
+        return self._objective(out.vertices)
+
+    def _objective(self, X: np.ndarray) -> float:
+        """The objective at the vertices ``X (n, 3)`` (normalized frame) with Eq. (3) on
+        the full grid, comparable between runs."""
+        return float(self._with_terms(self.full_energy()).evaluate(X).energy)
+
+    def _run_starts(self, starts, progress) -> list["_StartRun"]:
+        """Algorithm 1 from every start, advanced in lockstep one stage (mode) at a time.
+
+        With two starts, after each stage from ``start_check_modes`` on, one run stops
+        early when the other makes it redundant (docs/method.md, "Initialization and two
+        starts", item 6):
+
+        - *merged*: the two runs' vertices are closer than ``start_merge_distance`` (RMS,
+          normalized units) to each other; the one that stretches the edges more stops;
+        - *outstretched*: a run's edge strain is more than ``start_strain_ratio`` times the
+          other's, and the other's objective (full grid) is within ``select_energy_factor``
+          of its own: the final selection (:func:`_select_start`) would not keep it.
+        """
+        o = self.options
+        live = []
+        for label, start, options in starts:
+            if len(starts) > 1:
+                log.info("Algorithm 1 from start %s", label)
+            energy = self.energy()
+            shown = progress if progress is None or len(starts) == 1 else _labelled(progress, label)
+            live.append(_StartRun(label, None, 0.0, float("nan"), float("nan"), energy_term=energy,
+                                  run=AdaptiveRun(energy, self.basis, options, shown, start)))
+        runs = list(live)
+        with single_threaded_blas():
+            while live:
+                for r in live:
+                    r.run.advance()
+                if len(live) == 2 and not (live[0].run.done or live[1].run.done) \
+                        and live[0].run.stage >= o.start_check_modes:
+                    loser = self._redundant_start(*live)
+                    if loser is not None:
+                        self._finish(loser)
+                        live.remove(loser)
+                for r in [r for r in live if r.run.done]:
+                    self._finish(r)
+                    live.remove(r)
+        return runs
+
+    def _finish(self, r: "_StartRun") -> None:
+        """Keep a run's result, SDF time, edge strain and (when it ran to the end) objective;
+        let its evaluator go."""
+        r.result = r.run.result()
+        r.sdf_seconds = r.energy_term.seconds
+        r.strain = edge_strain(self.X0, r.result.vertices, self.source_faces)
+        if r.stopped is None:  # a stopped run keeps the objective it was judged by (or NaN)
+            r.energy = self._comparable_energy(r.result)
+        r.run = r.energy_term = None
+
+    def _redundant_start(self, a: "_StartRun", b: "_StartRun") -> "_StartRun | None":
+        """The run of ``a``, ``b`` (at the same stage) that need not go on, or ``None``;
+        marks it stopped."""
+        o = self.options
+        Xa, Xb = a.run.vertices, b.run.vertices
+        sa = edge_strain(self.X0, Xa, self.source_faces)
+        sb = edge_strain(self.X0, Xb, self.source_faces)
+        stage = a.run.stage
+        distance = float(np.sqrt(np.mean(np.sum((Xa - Xb) ** 2, axis=1))))
+        if distance < o.start_merge_distance:
+            loser, reason = (a, "merged") if sa > sb else (b, "merged")
+        else:
+            hi, lo = (a, b) if sa > sb else (b, a)
+            ratio = o.start_strain_ratio
+            if np.isinf(ratio) or not max(sa, sb) > ratio * min(sa, sb):
+                return None
+            # the objectives are compared only when the strains call for it (two full-grid
+            # evaluations); the less stretched run must fit within select_energy_factor
+            e_hi, e_lo = self._objective(hi.run.vertices), self._objective(lo.run.vertices)
+            if not (np.isfinite(e_lo) and e_lo <= o.select_energy_factor * e_hi):
+                return None
+            loser, reason = hi, "outstretched"
+            loser.energy = e_hi
+        loser.stopped, loser.reason = stage, reason
+        log.info("after %d modes the start from the %s stops (%s: RMS distance %.3g, edge "
+                 "strain %s %.3f, %s %.3f)", stage, loser.label, reason, distance,
+                 a.label, sa, b.label, sb)
+        return loser
 
     def full_energy(self) -> SDFEnergy:
         """Eq. (3) on every node of the quadrature grid (the paper's quadrature)."""
@@ -345,15 +426,8 @@ class Registration:
             starts = [starts[0], aligned] if self.options.init_keep_rest else [aligned]
         timings["initialize"] = time.perf_counter() - t
         t = time.perf_counter()
-        runs = []
-        for k, (label, start, options) in enumerate(starts):
-            if len(starts) > 1:
-                log.info("Algorithm 1 from start %d/%d (%s)", k + 1, len(starts), label)
-            energy = self.energy()
-            out = optimize_adaptive(energy, self.basis, options, progress, start=start)
-            runs.append(_StartRun(label, out, energy.seconds, self._comparable_energy(out),
-                                  edge_strain(self.X0, out.vertices, self.source_faces)))
-        chosen = _select_start(runs, self.options.select_energy_factor)
+        runs = self._run_starts(starts, progress)
+        chosen = _select_start([r for r in runs if r.stopped is None], self.options.select_energy_factor)
         out, first = chosen.result, runs[0].result
         timings["optimize"] = time.perf_counter() - t
         timings["sdf_queries"] = sum(r.sdf_seconds for r in runs)
@@ -398,7 +472,9 @@ class Registration:
         metrics["edge_strain"] = chosen.strain
         metrics["start"] = chosen.label
         metrics["starts"] = [{"start": r.label, "energy": r.energy, "edge_strain": r.strain,
-                              "evaluations": r.result.history.evaluations} for r in runs]
+                              "evaluations": r.result.history.evaluations,
+                              "stopped_after_modes": r.stopped, "stop_reason": r.reason}
+                             for r in runs]
         metrics["evaluations_all_starts"] = sum(r.result.history.evaluations for r in runs)
         # of which after a band refresh, querying only the points new to the band
         metrics["partial_evaluations_all_starts"] = sum(r.result.history.partial_evaluations for r in runs)
@@ -444,13 +520,24 @@ class Registration:
 
 @dataclass
 class _StartRun:
-    """Algorithm 1 from one start: its result, SDF-query time, full-grid objective, edge strain."""
+    """Algorithm 1 from one start: its result, SDF-query time, full-grid objective, edge
+    strain; while it runs, its :class:`AdaptiveRun` and evaluator; ``stopped``: the modes after
+    which it was stopped early (``reason``: ``merged`` or ``outstretched``), else ``None``."""
 
     label: str
     result: object
     sdf_seconds: float
     energy: float
     strain: float
+    run: AdaptiveRun | None = None
+    energy_term: object = None
+    stopped: int | None = None
+    reason: str | None = None
+
+
+def _labelled(progress: Callable[[ProgressEvent], None], label: str) -> Callable[[ProgressEvent], None]:
+    """``progress`` with the events' ``start`` set to ``label``."""
+    return lambda event: progress(replace(event, start=label))
 
 
 def _select_start(runs: list[_StartRun], factor: float) -> _StartRun:

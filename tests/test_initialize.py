@@ -254,3 +254,84 @@ def test_source_field_resolution_is_capped_and_still_covers_the_box(monkeypatch)
     assert max(field.grid.shape) == 20
     hi = field.grid.origin + field.grid.spacing * (np.asarray(field.grid.shape) - 1)
     assert np.all(field.grid.origin <= Q.min(0)) and np.all(hi >= Q.max(0))
+
+
+def test_adaptive_run_stage_by_stage_is_optimize_adaptive():
+    """Identity: advancing an AdaptiveRun one stage at a time is the one-call function."""
+    from morphmodes_vol.optimize import AdaptiveRun, optimize_adaptive, single_threaded_blas
+
+    X, F = asymmetric_blob()
+    Y = bend(X, 0.5, axis=2, towards=0)
+    reg = mm.Registration((X, F), (Y, F), mm.RegistrationOptions(grid=16, modes=3, initialization="none"))
+    one = optimize_adaptive(reg.energy(), reg.basis, reg.options)
+    with single_threaded_blas():
+        run = AdaptiveRun(reg.energy(), reg.basis, reg.options)
+        stages = []
+        while not run.done:
+            run.advance()
+            stages.append(run.stage)
+        out = run.result()
+    assert stages == [1, 2, 3]
+    np.testing.assert_array_equal(out.T, one.T)
+    assert out.history.energy == one.history.energy
+    assert out.history.evaluations == one.history.evaluations and out.status == one.status
+
+
+def test_a_start_stops_early_when_merged_or_outstretched():
+    """Hand-made run states: a copy of the other (merged), a stretched fit against a rigid
+    one (outstretched), and the energy guard that keeps an unstretched run from winning
+    when it does not fit."""
+    from types import SimpleNamespace
+
+    from morphmodes_vol.register import _StartRun
+
+    X, F = asymmetric_blob()
+    reg = mm.Registration((X, F), (X, F), mm.RegistrationOptions(grid=16, modes=4))
+    X0 = reg.X0
+
+    def start(label, V):
+        return _StartRun(label, None, 0.0, float("nan"), float("nan"), run=SimpleNamespace(vertices=V, stage=4))
+
+    stretched = X0 * [1.0, 1.0, 1.6]  # strain 0.3-0.4 on the blob's edges along z
+    near = X0 + 1e-3                   # a translation: unstretched, 1.7e-3 from X0 (RMS)
+    # merged: within start_merge_distance; the more stretched one stops
+    a, b = start("rest", X0 * 1.001), start("aligned", near)
+    assert reg._redundant_start(a, b) is a and a.stopped == 4 and a.reason == "merged"
+    # outstretched: the fit (at the target) is rigid, the other stretched
+    a, b = start("rest", stretched), start("aligned", near)
+    assert reg._redundant_start(a, b) is a and a.reason == "outstretched"
+    assert np.isfinite(a.energy) and b.stopped is None
+    # guard: the unstretched run is far from the target (objective > 10x the stretched one's)
+    far = X0 + [0.0, 0.0, 0.3]
+    fit = start("rest", X0 + 0.05 * (stretched - X0))
+    assert reg._redundant_start(fit, start("aligned", far)) is None
+    # a ratio below start_strain_ratio (about 1.6 here), or the checks off
+    mild = (start("rest", X0 * [1.0, 1.0, 1.1]), start("aligned", X0 * [1.0, 1.0, 1.06]))
+    assert reg._redundant_start(*mild) is None
+    reg.options = reg.options.replace(start_strain_ratio=float("inf"), start_merge_distance=0.0)
+    assert reg._redundant_start(start("rest", stretched), start("aligned", near)) is None
+    assert reg._redundant_start(start("rest", X0), start("aligned", X0.copy())) is None
+
+
+def test_two_starts_in_lockstep_stop_one_and_keep_the_other_run_unchanged():
+    """A target that is the source translated: both starts reach the same answer, one stops
+    as merged; the run that goes on is the same as without early stops."""
+    X, F = asymmetric_blob()
+    Y = bend(X, 0.4, axis=2, towards=0) + [0.05, 0.0, 0.0]
+    opts = mm.RegistrationOptions(grid=16, modes=5, start_check_modes=2, start_merge_distance=0.02)
+    events = []
+    r = mm.register((X, F), (Y, F), opts, ground_truth=Y, progress=events.append)
+    full = mm.register((X, F), (Y, F), opts.replace(start_check_modes=99), ground_truth=Y)
+    starts = {s["start"]: s for s in r.metrics["starts"]}
+    stopped = [s for s in starts.values() if s["stopped_after_modes"] is not None]
+    assert len(stopped) == 1 and stopped[0]["stop_reason"] == "merged"
+    assert stopped[0]["stopped_after_modes"] >= 2
+    assert {e.start for e in events} == {"rest", "aligned"}
+    kept = r.metrics["start"]
+    assert starts[kept]["stopped_after_modes"] is None
+    full_starts = {s["start"]: s for s in full.metrics["starts"]}
+    assert all(s["stopped_after_modes"] is None for s in full_starts.values())
+    assert starts[kept]["evaluations"] == full_starts[kept]["evaluations"]
+    assert r.evaluations < full.evaluations
+    if full.metrics["start"] == kept:
+        np.testing.assert_array_equal(r.vertices, full.vertices)
