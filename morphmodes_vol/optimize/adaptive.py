@@ -191,7 +191,7 @@ class _GradientStepper:
     def start_stage(self, m: int) -> None:
         self.alpha = None
 
-    def step(self, T: np.ndarray, current: EnergyEvaluation) -> _Step:
+    def step(self, T: np.ndarray, current: EnergyEvaluation, X: np.ndarray) -> _Step:
         basis, options = self.basis, self.options
         n = basis.X0.shape[0]
         grad = basis.pullback(current.gradient, T.shape[0])  # B_m^T dE/dx
@@ -257,11 +257,12 @@ class _LevenbergMarquardtStepper:
         self.damping = max(self.damping / 3.0, self.options.lm_damping * 1e-3)
         self.nu = 2.0
 
-    def step(self, T: np.ndarray, current: EnergyEvaluation) -> _Step:
+    def step(self, T: np.ndarray, current: EnergyEvaluation, X: np.ndarray) -> _Step:
+        """One step from the coefficients ``T (m, 3, 4)``, whose vertices are ``X (n, 3)``
+        and whose evaluation is ``current``."""
         basis, options = self.basis, self.options
         m = T.shape[0]
         n = basis.X0.shape[0]
-        X = basis.deform(T)
         # terms added to Eq. (3): the isometry prior's matrix in the vertices joins Eq. (3)'s
         # before the products with the skinning matrix; the landmarks' block is added after
         vertex_blocks = getattr(self.energy, "vertex_blocks", None)
@@ -483,7 +484,7 @@ class AdaptiveRun:
                     break
                 current = refreshed
                 history.refreshes.append(len(history.energy) - 1)
-            out = stepper.step(T, current)
+            out = stepper.step(T, current, X)
             if out.end is not None:
                 end = out.end
                 break
