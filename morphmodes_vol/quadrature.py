@@ -38,6 +38,9 @@ __all__ = ["GridBlocks", "BandEnergy", "CoarseToFine", "every_other_node"]
 
 log = logging.getLogger(__name__)
 
+# normalized units; above the float32 error of Open3D's closest-face search (about 1e-7)
+_BOUND_SLACK = 1e-6
+
 
 @dataclass(frozen=True)
 class GridBlocks:
@@ -114,7 +117,8 @@ class BandEnergy:
 
     Counters: ``evaluations``; ``partial_evaluations``, those after a refresh that queried
     only the points new to the band (:meth:`evaluate`); ``points_queried``, the points sent
-    to the mesh queries; ``refreshes``.
+    to the mesh queries; ``refreshes``; ``centres_queried``, the block centres a refresh
+    sent to the distance query (:meth:`refresh`).
     """
 
     def __init__(self, F, grid: Grid, g_nodes, sample_target, band: float, factor: int,
@@ -131,12 +135,15 @@ class BandEnergy:
         reach = self.band + self.blocks.radius
         self._near_target = np.abs(self.g_centers) < reach + grid.spacing  # trilinear slack
         self._anchor: np.ndarray | None = None
+        # lower bounds of the source's distance at the block centres, valid at _anchor
+        self._lower = np.full(self.blocks.counts.size, -np.inf)
         self._inner: SDFEnergy | None = None
         self._ids: np.ndarray | None = None  # each point's node, or N + its block (far centres)
         self._last = None  # (X, ids, evaluation, signed distances) of the last evaluation
         self.evaluations = 0
         self.partial_evaluations = 0
         self.points_queried = 0
+        self.centres_queried = 0
         self.seconds = 0.0
         self.refreshes = 0
 
@@ -151,13 +158,24 @@ class BandEnergy:
     def refresh(self, X: np.ndarray, force: bool = False) -> bool:
         """Recompute the band for the source vertices ``X (n, 3)`` if some vertex moved by
         more than ``margin`` since the last refresh (or ``force``). Returns whether it did."""
-        if not force and self._anchor is not None:
+        moved = 0.0
+        if self._anchor is not None:
             moved = float(np.sqrt(np.max(np.sum((X - self._anchor) ** 2, axis=1))))
-            if moved <= self.margin:
+            if not force and moved <= self.margin:
                 return False
         t0 = time.perf_counter()
-        dist = closest_points(X, self.F, self.blocks.centers).distance
-        near = self._near_target | (dist < self.band + self.blocks.radius + self.margin)
+        reach = self.band + self.blocks.radius + self.margin
+        # No vertex moved by more than `moved`, so no point of the surface did (each is a
+        # convex combination of its triangle's corners): the distance at a centre fell by at
+        # most `moved`. Only the centres whose bound is below the reach are queried; the
+        # others stay far, as a query would find (the slack covers the float32 search).
+        # Centres near the target are near whatever the source does, and never queried.
+        self._lower -= moved
+        ask = ~self._near_target & (self._lower <= reach + _BOUND_SLACK)
+        if ask.any():
+            self._lower[ask] = closest_points(X, self.F, self.blocks.centers[ask]).distance
+        self.centres_queried += int(ask.sum())
+        near = self._near_target | (self._lower < reach)
         fine = near[self.blocks.block_of_node]
         far = np.flatnonzero(~near)
         h3 = self.grid.cell_volume

@@ -153,6 +153,31 @@ def test_evaluation_after_a_refresh_reuses_shared_points_with_identical_results(
     assert band.partial_evaluations == 1
 
 
+def test_refresh_queries_only_centres_the_bounds_cannot_settle(lumpy_sphere):
+    """Identity: along a sequence of motions, each refresh (querying only the block centres
+    whose lower distance bound is within reach, none near the target) gives the quadrature a
+    fresh band (every centre queried) gives at those vertices."""
+    V, F = lumpy_sphere
+    _, band, _ = _band_pair(V, F, V * 1.1)
+    band.refresh(V, force=True)
+    first = band.centres_queried
+    assert 0 < first == int((~band._near_target).sum())  # all but the target's
+    rng = np.random.default_rng(1)
+    X = V.copy()
+    for k in range(6):
+        # a drift, a shear and a bump, each refresh after at least the margin
+        X = X + [0.7 * band.margin, 0.0, 0.3 * band.margin] + 0.4 * band.margin * np.sin(3 * X + k)
+        X = X + rng.normal(scale=0.1 * band.margin, size=X.shape)
+        before = band.centres_queried
+        assert band.refresh(X)
+        asked = band.centres_queried - before
+        assert asked < first  # the bounds settled some centres without a query
+        _, fresh, _ = _band_pair(V, F, V * 1.1)
+        fresh.refresh(X, force=True)
+        np.testing.assert_array_equal(band.Q, fresh.Q)
+        np.testing.assert_array_equal(band.weights, fresh.weights)
+
+
 def test_known_queries_give_the_full_evaluation(lumpy_sphere):
     """``SDFEnergy.evaluate(X, known)`` with the answers of any subset of points equals the
     evaluation without them."""
