@@ -378,7 +378,8 @@ class AdaptiveRun:
     T : (m, 3, 4) float64
         Coefficients after the last completed stage (or at the start).
     stage : int
-        Stages completed so far (the active modes when the next stage begins, minus one).
+        Modes active in the last completed stage (``initial_modes - 1`` before the first);
+        the next stage adds mode ``stage + 1``.
     done : bool
         Every stage is completed, or the run was cut (``max_iterations``, a fault).
     """
