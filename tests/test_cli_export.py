@@ -113,3 +113,27 @@ def test_optimizer_flag_brings_its_quadrature_unless_given():
     assert (fast.optimizer, fast.quadrature) == ("lm", "band")
     mixed = options("--optimizer", "lm", "--quadrature", "full")
     assert (mixed.optimizer, mixed.quadrature) == ("lm", "full")
+
+
+def test_progress_lines_name_the_start_and_follow_each_start_to_a_new_mode():
+    """Off a terminal, a line at each new (start, mode) and otherwise every few seconds; the
+    two starts of a registration are labelled."""
+    import io
+
+    from morphmodes_vol.cli import ProgressPrinter
+    from morphmodes_vol.optimize import ProgressEvent
+
+    stream = io.StringIO()
+    printer = ProgressPrinter(stream, interval=1e9)
+
+    def event(start, modes, iteration):
+        return ProgressEvent(modes=modes, max_modes=3, iteration=iteration, stage_iteration=0,
+                             energy=1.0, step_rms=float("nan"), threshold=1e-3, evaluations=1,
+                             elapsed=0.0, start=start)
+
+    for e in [event("rest", 1, 0), event("rest", 1, 1), event("aligned", 1, 0),
+              event("aligned", 1, 1), event("rest", 2, 2), event("", 2, 3)]:
+        printer(e)
+    lines = stream.getvalue().splitlines()
+    assert [line[:20] for line in lines] == ["[rest] modes 1/3  it", "[aligned] modes 1/3 ",
+                                             "[rest] modes 2/3  it", "modes 2/3  iter 3  e"]
