@@ -35,7 +35,8 @@ from .gauss_newton import (NormalEquations, face_corner_pattern, lm_solve, subsp
                            subspace_normal_equations)
 from .linesearch import armijo_backtracking
 
-__all__ = ["optimize_adaptive", "AdaptiveRun", "OptimizationHistory", "ProgressEvent", "Status"]
+__all__ = ["optimize_adaptive", "AdaptiveRun", "single_threaded_blas", "OptimizationHistory", "ProgressEvent",
+           "Status"]
 
 log = logging.getLogger(__name__)
 
