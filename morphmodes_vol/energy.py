@@ -219,6 +219,10 @@ class AddedTerm:
     (:mod:`morphmodes_vol.isometry`).
     """
 
+    #: whether :meth:`term_vertex_blocks` returns the term's matrix (a subclass that
+    #: defines it sets this), so :meth:`normal_matrix` knows what the optimizer folds
+    has_vertex_blocks = False
+
     def __init__(self, inner):
         self.inner = inner
 
@@ -280,8 +284,7 @@ class AddedTerm:
         """The term's Gauss-Newton block plus the inner energy's, when it has one.
         ``folded``: without the terms that have vertex blocks (:meth:`vertex_blocks`, which
         the optimizer folds into Eq. 3's); ``None`` when nothing is left."""
-        has_blocks = type(self).term_vertex_blocks is not AddedTerm.term_vertex_blocks
-        A = None if folded and has_blocks else self.term_normal_matrix(basis, m, X)
+        A = None if folded and self.has_vertex_blocks else self.term_normal_matrix(basis, m, X)
         inner = getattr(self.inner, "normal_matrix", None)
         B = None if inner is None else inner(basis, m, X, folded=folded)
         if A is None or B is None:

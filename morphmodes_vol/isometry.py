@@ -134,6 +134,8 @@ class IsometryEnergy(AddedTerm):
     2.0
     """
 
+    has_vertex_blocks = True
+
     def __init__(self, inner, X0, faces, weight: float, volume: float, tolerance: float = 0.0):
         super().__init__(inner)
         self.tolerance = float(tolerance)

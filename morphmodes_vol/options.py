@@ -182,6 +182,10 @@ class RegistrationOptions:
         A run's edge strain is more than this times the other's, and the other's objective
         is within ``select_energy_factor`` of its own: it stops (the final selection would
         not keep it). ``inf``: never.
+    start_choice_modes : int or None
+        With two starts still running after this many modes, the final choice
+        (``init_keep_rest``) is made there and only the chosen run goes on to ``modes``: the
+        deep modes refine one run, not two. ``None`` (default): the choice is made at the end.
     isometry_weight : float
         Weight of the isometry prior (:mod:`morphmodes_vol.isometry`), added to Eq. (3): a
         penalty on the edges whose log stretch differs from the surface's mean by more than
@@ -244,6 +248,7 @@ class RegistrationOptions:
     start_check_modes: int = 4
     start_merge_distance: float = 0.005
     start_strain_ratio: float = 2.5
+    start_choice_modes: int | None = None
     init_lm_iterations_per_stage: int = 3
     isometry_weight: float = 3e-4
     isometry_tolerance: float = 0.2
@@ -335,6 +340,8 @@ class RegistrationOptions:
         need(isinstance(self.start_strain_ratio, (int, float)) and not isinstance(self.start_strain_ratio, bool)
              and self.start_strain_ratio >= 1,
              "start_strain_ratio", "a float >= 1 (inf: never)")
+        need(self.start_choice_modes is None or (_is_int(self.start_choice_modes) and self.start_choice_modes >= 1),
+             "start_choice_modes", "a positive integer or None")
 
     @property
     def resolved_target_grid(self) -> int:

@@ -332,6 +332,9 @@ class Registration:
         - *outstretched*: a run's edge strain is more than ``start_strain_ratio`` times the
           other's, and the other's objective (full grid) is within ``select_energy_factor``
           of its own: the final selection (:func:`_select_start`) would not keep it.
+
+        After ``start_choice_modes`` modes, if both still run, the final selection is made
+        there and the other run stops (*not chosen*).
         """
         o = self.options
         live = []
@@ -347,9 +350,11 @@ class Registration:
             while live:
                 for r in live:
                     r.run.advance()
-                if len(live) == 2 and not (live[0].run.done or live[1].run.done) \
-                        and live[0].run.stage >= o.start_check_modes:
-                    loser = self._redundant_start(*live)
+                if len(live) == 2 and not (live[0].run.done or live[1].run.done):
+                    stage = live[0].run.stage
+                    loser = self._redundant_start(*live) if stage >= o.start_check_modes else None
+                    if loser is None and o.start_choice_modes is not None and stage >= o.start_choice_modes:
+                        loser = self._not_chosen(*live)
                     if loser is not None:
                         self._finish(loser)
                         live.remove(loser)
@@ -395,6 +400,20 @@ class Registration:
         log.info("after %d modes the start from the %s stops (%s: RMS distance %.3g, edge "
                  "strain %s %.3f, %s %.3f)", stage, loser.label, reason, distance,
                  a.label, sa, b.label, sb)
+        return loser
+
+    def _not_chosen(self, a: "_StartRun", b: "_StartRun") -> "_StartRun":
+        """The run of ``a``, ``b`` (at the same stage) that the final selection
+        (:func:`_select_start`) would not keep now; marks it stopped."""
+        for r in (a, b):
+            r.energy = self._objective(r.run.vertices)
+            r.strain = edge_strain(self.X0, r.run.vertices, self.source_faces)
+        kept = _select_start([a, b], self.options.select_energy_factor)
+        loser = b if kept is a else a
+        loser.stopped, loser.reason = a.run.stage, "not chosen"
+        log.info("after %d modes the start from the %s is kept and the one from the %s stops "
+                 "(edge strain %.3f against %.3f, objective %.3g against %.3g)", a.run.stage,
+                 kept.label, loser.label, kept.strain, loser.strain, kept.energy, loser.energy)
         return loser
 
     def full_energy(self) -> SDFEnergy:
@@ -526,7 +545,7 @@ class Registration:
 class _StartRun:
     """Algorithm 1 from one start: its result, SDF-query time, full-grid objective, edge
     strain; while it runs, its :class:`AdaptiveRun` and evaluator; ``stopped``: the modes after
-    which it was stopped early (``reason``: ``merged`` or ``outstretched``), else ``None``."""
+    which it was stopped early (``reason``: ``merged``, ``outstretched`` or ``not chosen``), else ``None``."""
 
     label: str
     result: object

@@ -311,6 +311,37 @@ def test_a_start_stops_early_when_merged_or_outstretched():
     reg.options = reg.options.replace(start_strain_ratio=float("inf"), start_merge_distance=0.0)
     assert reg._redundant_start(start("rest", stretched), start("aligned", near)) is None
     assert reg._redundant_start(start("rest", X0), start("aligned", X0.copy())) is None
+    # the choice at start_choice_modes: the least stretched run that fits is kept
+    a, b = start("rest", stretched), start("aligned", near)
+    assert reg._not_chosen(a, b) is a and a.stopped == 4 and a.reason == "not chosen"
+    assert np.isfinite(a.energy) and np.isfinite(b.energy) and b.strain < a.strain
+    # ... and the guard: an unstretched run far from the target is not kept
+    a, b = start("rest", fit.run.vertices), start("aligned", far)
+    assert reg._not_chosen(a, b) is b and b.reason == "not chosen" and a.stopped is None
+
+
+def test_the_choice_between_starts_made_early_is_the_final_choice_at_that_stage():
+    """With ``start_choice_modes=k`` the run kept is the one a registration with ``k``
+    modes keeps, and only it goes on to ``modes``."""
+    X, F = asymmetric_blob()
+    Y = bend(X, 0.4, axis=2, towards=0) + [0.05, 0.0, 0.0]
+    opts = mm.RegistrationOptions(grid=16, modes=5, start_check_modes=99)
+    short = mm.register((X, F), (Y, F), opts.replace(modes=3))
+    r = mm.register((X, F), (Y, F), opts.replace(start_choice_modes=3))
+    starts = {s["start"]: s for s in r.metrics["starts"]}
+    short_starts = {s["start"]: s for s in short.metrics["starts"]}
+    kept = short.metrics["start"]
+    assert r.metrics["start"] == kept and starts[kept]["stopped_after_modes"] is None
+    (other,) = set(starts) - {kept}
+    assert starts[other]["stopped_after_modes"] == 3 and starts[other]["stop_reason"] == "not chosen"
+    # the stopped run is the 3-mode run, judged by its full-grid objective there
+    assert starts[other]["evaluations"] == short_starts[other]["evaluations"]
+    np.testing.assert_allclose(starts[other]["energy"], short_starts[other]["energy"], rtol=1e-12)
+    assert starts[kept]["evaluations"] > short_starts[kept]["evaluations"]
+    assert r.history.modes[-1] == 5
+    # at or above modes, the choice is made at the end, as by default
+    late = mm.register((X, F), (Y, F), opts.replace(start_choice_modes=5))
+    assert all(s["stopped_after_modes"] is None for s in late.metrics["starts"])
 
 
 def test_two_starts_in_lockstep_stop_one_and_keep_the_other_run_unchanged():
