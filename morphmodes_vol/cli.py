@@ -150,6 +150,13 @@ def _summary(result, paths) -> str:
                      f"{m['init_scale']:.3f}, {m['init_evaluations']} evaluations of the source field "
                      f"({m['init_field_nodes']} nodes), "
                      f"{result.timings['initialize']:.1f}s")
+    if "icp_iterations" in m:
+        lines.append(f"ICP alignment: rotation {m['icp_rotation_deg']:.1f} deg, {m['icp_iterations']} iterations")
+    if len(m.get("starts", [])) > 1:
+        lines.append("starts: " + "; ".join(
+            f"{s['start']} " + (f"stopped after {s['stopped_after_modes']} modes ({s['stop_reason']})"
+                                if s["stopped_after_modes"] is not None else "ran to the end")
+            for s in m["starts"]) + f"; kept: {m['start']}")
     lines.append(f"SDF residual RMS: {m['initial_sdf_rms']:.4g} -> {m['final_sdf_rms']:.4g} "
                  "(fraction of the scene diagonal)")
     if "ground_truth_error" in m:

@@ -36,6 +36,11 @@ Algorithm 1:
    chosen map ``x -> A [x; 1]`` is handed to Algorithm 1 as the coefficients of mode 0 (the
    constant mode, so ``T_0 = (A - [I 0]) / w_0``), which then goes on with a full affine
    map and the deformation modes from there.
+
+A second alignment, :func:`icp_align`, fits the source's *vertices* to the target's *surface*
+(rigid ICP from the rest pose, as the RICP+NRICP baseline does): a one-sided surface fit
+whose basin differs from the volume fit's, and the start of the third run of
+:meth:`morphmodes_vol.Registration.run` (``icp_start``; docs/method.md).
 """
 
 from __future__ import annotations
@@ -50,9 +55,10 @@ import numpy as np
 
 from .optimize.gauss_newton import NormalEquations, lm_solve
 from .sdf.grid import Grid, trilinear_sample
-from .sdf.source import inside, signed_distance
+from .sdf.source import _scene, inside, signed_distance
 
-__all__ = ["InitialAlignment", "RigidSourceField", "align", "candidate_rotations", "rotation_angle"]
+__all__ = ["IcpAlignment", "InitialAlignment", "RigidSourceField", "align", "candidate_rotations", "icp_align",
+           "rotation_angle"]
 
 log = logging.getLogger(__name__)
 
@@ -120,6 +126,112 @@ class InitialAlignment:
             "init_evaluations": int(self.evaluations),
             "init_field_nodes": int(self.field_nodes),
         }
+
+
+@dataclass(frozen=True)
+class IcpAlignment:
+    """Result of :func:`icp_align`.
+
+    Attributes
+    ----------
+    matrix : (3, 4) float64
+        The map ``x -> matrix @ [x, 1]`` (``scale * R`` and the translation).
+    scale : float
+    cost : float
+        Mean squared distance of the mapped points to the surface at the last iteration.
+    iterations : int
+    seconds : float
+    """
+
+    matrix: np.ndarray
+    scale: float
+    cost: float
+    iterations: int
+    seconds: float
+
+    def apply(self, X: np.ndarray) -> np.ndarray:
+        """``(n, 3)`` points mapped."""
+        return X @ self.matrix[:, :3].T + self.matrix[:, 3]
+
+    def summary(self) -> dict:
+        """Plain numbers for reports (no time: it is in the report's timings)."""
+        return {
+            "icp_rotation_deg": rotation_angle(self.matrix[:, :3] / self.scale),
+            "icp_scale": float(self.scale),
+            "icp_translation": float(np.linalg.norm(self.matrix[:, 3])),
+            "icp_cost": float(self.cost),
+            "icp_iterations": int(self.iterations),
+        }
+
+
+def icp_align(
+    X: np.ndarray,
+    V: np.ndarray,
+    F: np.ndarray,
+    *,
+    scale: bool = False,
+    max_iterations: int = 100,
+    threshold: float = 1e-10,
+) -> IcpAlignment:
+    """Rigid (or similarity) ICP of the points ``X`` onto the surface ``(V, F)``, from the
+    identity (Besl and McKay 1992).
+
+    The iteration of ``trimesh.registration.icp``: the closest point of the surface to every
+    mapped point, then the best rigid motion (``scale``: similarity) from the mapped points to
+    those (``trimesh.registration.procrustes``), until the mean squared distance decreases by
+    less than ``threshold``; the closest points come from one Open3D ``RaycastingScene``
+    (float32), which on the 7k-vertex cat took 0.9 s for 100 iterations where trimesh's
+    ``nearest.on_surface`` took 38 s to the same matrix.
+
+    Parameters
+    ----------
+    X : (n, 3) float
+        Points to align (the source vertices, normalized frame).
+    V : (m, 3) float
+    F : (f, 3) int
+        Target surface, same frame.
+    scale : bool
+        Fit a uniform scale too.
+    max_iterations : int
+    threshold : float
+        Stop when the cost decreases by less than this (or increases).
+
+    Returns
+    -------
+    IcpAlignment
+
+    Examples
+    --------
+    >>> from morphmodes_vol.primitives import icosphere
+    >>> V, F = icosphere(2)
+    >>> r = icp_align(V * [1.0, 0.8, 0.6], V * [1.0, 0.8, 0.6] + [0.05, 0.0, 0.0], F)
+    >>> np.round(r.matrix, 3) + 0.0  # the translation found, no rotation
+    array([[1.  , 0.  , 0.  , 0.05],
+           [0.  , 1.  , 0.  , 0.  ],
+           [0.  , 0.  , 1.  , 0.  ]])
+    """
+    from open3d.core import Tensor
+    from trimesh.registration import procrustes
+
+    t0 = time.perf_counter()
+    a = np.array(X, dtype=np.float64)
+    if a.ndim != 2 or a.shape[1] != 3 or len(a) < 3:
+        raise ValueError(f"X must be (n, 3) with n >= 3, got {a.shape}")
+    scene = _scene(V, F)
+    total = np.eye(4)
+    old_cost, cost, it = np.inf, np.inf, 0
+    for it in range(1, max_iterations + 1):
+        closest = scene.compute_closest_points(Tensor(np.ascontiguousarray(a, dtype=np.float32)))
+        b = closest["points"].numpy().astype(np.float64)
+        matrix, a, cost = procrustes(a, b, reflection=False, translation=True, scale=scale,
+                                     return_cost=True)
+        total = matrix @ total
+        if old_cost - cost < threshold:
+            break
+        old_cost = cost
+    s = float(np.cbrt(np.linalg.det(total[:3, :3])))
+    return IcpAlignment(matrix=total[:3].copy(), scale=s, cost=float(cost), iterations=it,
+                        seconds=time.perf_counter() - t0)
 
 
 def rotation_angle(R: np.ndarray) -> float:

@@ -165,6 +165,13 @@ class RegistrationOptions:
         least (:func:`morphmodes_vol.metrics.edge_strain`) among those whose objective (Eq. 3
         on the full grid plus the isometry prior and landmarks when on) is within
         ``select_energy_factor`` of the lowest; ``False`` runs from the aligned start only.
+    icp_start : bool
+        With an initialization and a target mesh, also run Algorithm 1 from a rigid ICP
+        alignment of the source's vertices onto the target's surface
+        (:func:`morphmodes_vol.initialize.icp_align`; a similarity with
+        ``initialization="similarity"``), and choose among all the runs as
+        ``init_keep_rest`` says. The volume fit of the initialization and the surface fit of
+        ICP land in different basins on large pose changes (docs/method.md).
     select_energy_factor : float
         See ``init_keep_rest``; at least 1 (``1``: the lowest objective). With the isometry
         prior, every factor from 1.25 to 10 kept the same start on the 18 poses
@@ -244,6 +251,7 @@ class RegistrationOptions:
     init_candidates: int = 6
     init_switch: float = 0.6
     init_keep_rest: bool = True
+    icp_start: bool = True
     select_energy_factor: float = 10.0
     start_check_modes: int = 4
     start_merge_distance: float = 0.005
@@ -328,6 +336,7 @@ class RegistrationOptions:
              "an integer in [1, 29]")
         need(_is_real(self.init_switch) and 0 <= self.init_switch <= 1, "init_switch", "a float in [0, 1]")
         need(isinstance(self.init_keep_rest, bool), "init_keep_rest", "True or False")
+        need(isinstance(self.icp_start, bool), "icp_start", "True or False")
         need(_is_int(self.coarse_modes) and self.coarse_modes >= 0, "coarse_modes", "a non-negative integer")
         need(_is_int(self.init_lm_iterations_per_stage) and self.init_lm_iterations_per_stage >= 1,
              "init_lm_iterations_per_stage", "a positive integer")

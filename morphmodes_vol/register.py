@@ -18,7 +18,7 @@ import numpy as np
 from .eigenbasis import LBSBasis, mesh_skinning_weights, to_paper_z
 from .energy import SDFEnergy
 from .errors import OptionError
-from .initialize import InitialAlignment, align
+from .initialize import IcpAlignment, InitialAlignment, align, icp_align
 from .isometry import IsometryEnergy
 from .landmarks import LandmarkEnergy, Landmarks, as_landmarks, landmark_rms
 from .mesh import MeshLike, Normalization, as_mesh, bbox_diagonal, joint_normalization
@@ -307,6 +307,21 @@ class Registration:
                      kind=o.initialization, keep=o.init_candidates, switch=o.init_switch,
                      sign=o.source_sign)
 
+    def icp_alignment(self) -> IcpAlignment:
+        """Rigid ICP of the source's vertices onto the target's surface from the rest pose
+        (:func:`morphmodes_vol.initialize.icp_align`; a similarity with
+        ``initialization="similarity"``), normalized frame; needs a target mesh."""
+        if self.Y is None:
+            raise ValueError("ICP needs a target mesh; the target was given as an SDF")
+        return icp_align(self.X0, self.Y, self.target_faces,
+                         scale=self.options.initialization == "similarity")
+
+    def _start_coefficients(self, matrix: np.ndarray) -> np.ndarray:
+        """Mode 0's block ``(1, 3, 4)`` that maps the rest pose by ``x -> matrix @ [x, 1]``:
+        mode 0 is constant, so ``T_0 = (A - [I 0]) / w_0``."""
+        T0 = np.asarray(matrix, dtype=np.float64) - np.hstack([np.eye(3), np.zeros((3, 1))])
+        return (T0 / self.weights[0, 0])[None]
+
     def _comparable_energy(self, out) -> float:
         """The objective of a run's result (Eq. 3 plus the isometry prior and landmarks
         when on) with Eq. (3) on the full grid: a band quadrature differs per run."""
@@ -323,9 +338,9 @@ class Registration:
     def _run_starts(self, starts, progress) -> list["_StartRun"]:
         """Algorithm 1 from every start, advanced in lockstep one stage (mode) at a time.
 
-        With two starts, after each stage from ``start_check_modes`` on, one run stops
-        early when the other makes it redundant (docs/method.md, "Initialization and two
-        starts", item 6):
+        After each stage from ``start_check_modes`` on, a run stops early when another
+        makes it redundant (docs/method.md, "Initialization and two starts", item 6),
+        pair by pair:
 
         - *merged*: the two runs' vertices are closer than ``start_merge_distance`` (RMS,
           normalized units) to each other; the one that stretches the edges more stops;
@@ -333,8 +348,8 @@ class Registration:
           other's, and the other's objective (full grid) is within ``select_energy_factor``
           of its own: the final selection (:func:`_select_start`) would not keep it.
 
-        After ``start_choice_modes`` modes, if both still run, the final selection is made
-        there and the other run stops (*not chosen*).
+        After ``start_choice_modes`` modes, the final selection is made among the runs
+        still going, and the others stop (*not chosen*).
         """
         o = self.options
         live = []
@@ -350,15 +365,16 @@ class Registration:
             while live:
                 for r in live:
                     r.run.advance()
-                if len(live) == 2 and not (live[0].run.done or live[1].run.done):
-                    stage = live[0].run.stage
-                    loser = self._redundant_start(*live) if stage >= o.start_check_modes else None
-                    if loser is None and o.start_choice_modes is not None and stage >= o.start_choice_modes:
-                        loser = self._not_chosen(*live)
-                    if loser is not None:
-                        self._finish(loser)
-                        live.remove(loser)
-                for r in [r for r in live if r.run.done]:
+                going = [r for r in live if not r.run.done]
+                stage = going[0].run.stage if going else 0
+                if len(going) > 1 and stage >= o.start_check_modes:
+                    for a, b in [(a, b) for i, a in enumerate(going) for b in going[i + 1:]]:
+                        if a.stopped is None and b.stopped is None:
+                            self._redundant_start(a, b)
+                    going = [r for r in going if r.stopped is None]
+                if len(going) > 1 and o.start_choice_modes is not None and stage >= o.start_choice_modes:
+                    self._choose_now(going)
+                for r in [r for r in live if r.run.done or r.stopped is not None]:
                     self._finish(r)
                     live.remove(r)
         return runs
@@ -372,6 +388,13 @@ class Registration:
         if r.stopped is None:  # a stopped run keeps the objective it was judged by (or NaN)
             r.energy = self._comparable_energy(r.result)
         r.run = r.energy_term = None
+
+    def _objective_of(self, r: "_StartRun") -> float:
+        """The full-grid objective of a running start's current state, computed once per
+        stage."""
+        if r.judged != r.run.stage:
+            r.judged, r.energy = r.run.stage, self._objective(r.run.vertices)
+        return r.energy
 
     def _redundant_start(self, a: "_StartRun", b: "_StartRun") -> "_StartRun | None":
         """The run of ``a``, ``b`` (at the same stage) that need not go on, or ``None``;
@@ -391,30 +414,30 @@ class Registration:
                 return None
             # the objectives are compared only when the strains call for it (two full-grid
             # evaluations); the less stretched run must fit within select_energy_factor
-            e_hi, e_lo = self._objective(hi.run.vertices), self._objective(lo.run.vertices)
+            e_hi, e_lo = self._objective_of(hi), self._objective_of(lo)
             if not (np.isfinite(e_lo) and e_lo <= o.select_energy_factor * e_hi):
                 return None
             loser, reason = hi, "outstretched"
-            loser.energy = e_hi
         loser.stopped, loser.reason = stage, reason
         log.info("after %d modes the start from the %s stops (%s: RMS distance %.3g, edge "
                  "strain %s %.3f, %s %.3f)", stage, loser.label, reason, distance,
                  a.label, sa, b.label, sb)
         return loser
 
-    def _not_chosen(self, a: "_StartRun", b: "_StartRun") -> "_StartRun":
-        """The run of ``a``, ``b`` (at the same stage) that the final selection
-        (:func:`_select_start`) would not keep now; marks it stopped."""
-        for r in (a, b):
-            r.energy = self._objective(r.run.vertices)
+    def _choose_now(self, runs: list["_StartRun"]) -> "_StartRun":
+        """The final selection (:func:`_select_start`) among ``runs`` (at the same stage),
+        made now: the others are marked stopped (*not chosen*); returns the kept run."""
+        for r in runs:
+            self._objective_of(r)
             r.strain = edge_strain(self.X0, r.run.vertices, self.source_faces)
-        kept = _select_start([a, b], self.options.select_energy_factor)
-        loser = b if kept is a else a
-        loser.stopped, loser.reason = a.run.stage, "not chosen"
-        log.info("after %d modes the start from the %s is kept and the one from the %s stops "
-                 "(edge strain %.3f against %.3f, objective %.3g against %.3g)", a.run.stage,
-                 kept.label, loser.label, kept.strain, loser.strain, kept.energy, loser.energy)
-        return loser
+        kept = _select_start(runs, self.options.select_energy_factor)
+        for r in runs:
+            if r is not kept:
+                r.stopped, r.reason = r.run.stage, "not chosen"
+        log.info("after %d modes the start from the %s is kept (edge strain %s; objective %s)",
+                 kept.run.stage, kept.label, ", ".join(f"{r.label} {r.strain:.3f}" for r in runs),
+                 ", ".join(f"{r.label} {r.energy:.3g}" for r in runs))
+        return kept
 
     def full_energy(self) -> SDFEnergy:
         """Eq. (3) on every node of the quadrature grid (the paper's quadrature)."""
@@ -440,13 +463,19 @@ class Registration:
         starts: list[tuple[str, np.ndarray | None, RegistrationOptions]] = [("rest", None, self.options)]
         init_summary = {}
         if self.options.initialization != "none":
+            aligned_options = self.options.replace(
+                lm_iterations_per_stage=self.options.init_lm_iterations_per_stage)
             alignment = self.initial_alignment()
-            T0 = alignment.matrix - np.hstack([np.eye(3), np.zeros((3, 1))])
-            T0 = (T0 / self.weights[0, 0])[None]  # mode 0 is constant: T_0 = (A - [I 0]) / w_0
             init_summary = alignment.summary()
-            aligned = ("aligned", T0, self.options.replace(
-                lm_iterations_per_stage=self.options.init_lm_iterations_per_stage))
-            starts = [starts[0], aligned] if self.options.init_keep_rest else [aligned]
+            aligned = [("aligned", self._start_coefficients(alignment.matrix), aligned_options)]
+            if self.options.icp_start:
+                if self.Y is None:
+                    log.info("no target mesh (an SDF target): no ICP start")
+                else:
+                    icp = self.icp_alignment()
+                    init_summary.update(icp.summary())
+                    aligned.append(("icp", self._start_coefficients(icp.matrix), aligned_options))
+            starts = starts + aligned if self.options.init_keep_rest else aligned
         timings["initialize"] = time.perf_counter() - t
         t = time.perf_counter()
         runs = self._run_starts(starts, progress)
@@ -556,6 +585,7 @@ class _StartRun:
     energy_term: object = None
     stopped: int | None = None
     reason: str | None = None
+    judged: int | None = None  # the stage at which ``energy`` was computed while running
 
 
 def _labelled(progress: Callable[[ProgressEvent], None], label: str) -> Callable[[ProgressEvent], None]:

@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 import morphmodes_vol as mm
 from morphmodes_vol.initialize import (RigidSourceField, _evaluate, _motion_metric, _rigid_jacobian,
                                        _rodrigues, _Similarity, align, candidate_rotations,
-                                       rotation_angle)
+                                       icp_align, rotation_angle)
 from morphmodes_vol.primitives import bend, capsule
 from morphmodes_vol.sdf import Grid, signed_distance
 
@@ -214,7 +214,9 @@ def test_cli_init_flag_reaches_the_options_and_the_report(tmp_path, capsys):
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert report["options"]["initialization"] == "rigid"
     assert report["metrics"]["init_rotation_deg"] > 20 and "initialize" in report["timings"]
-    assert "initial alignment: rotation" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "initial alignment: rotation" in out and "ICP alignment: rotation" in out
+    assert f"kept: {report['metrics']['start']}" in out
 
 
 def test_select_start_prefers_the_least_distorted_of_the_runs_that_fit():
@@ -232,16 +234,22 @@ def test_two_starts_are_run_and_reported():
     X, F = asymmetric_blob()
     Y = bend(X, 0.5, axis=2, towards=0)
     opts = mm.RegistrationOptions(grid=16, modes=2, optimizer="lm", quadrature="band",
-                                  initialization="rigid")
+                                  initialization="rigid", start_check_modes=99)
     r = mm.register((X, F), (Y, F), opts, ground_truth=Y)
     starts = r.metrics["starts"]
-    assert [s["start"] for s in starts] == ["rest", "aligned"]
-    assert r.metrics["start"] in ("rest", "aligned")
+    assert [s["start"] for s in starts] == ["rest", "aligned", "icp"]
+    assert r.metrics["start"] in ("rest", "aligned", "icp")
     assert r.evaluations == sum(s["evaluations"] for s in starts) > r.history.evaluations
     chosen = next(s for s in starts if s["start"] == r.metrics["start"])
     assert chosen["edge_strain"] == r.metrics["edge_strain"]
-    one = mm.register((X, F), (Y, F), opts.replace(init_keep_rest=False))
+    assert r.metrics["icp_iterations"] >= 1 and "init_rotation_deg" in r.metrics
+    two = mm.register((X, F), (Y, F), opts.replace(icp_start=False))
+    assert [s["start"] for s in two.metrics["starts"]] == ["rest", "aligned"]
+    assert "icp_iterations" not in two.metrics
+    one = mm.register((X, F), (Y, F), opts.replace(init_keep_rest=False, icp_start=False))
     assert [s["start"] for s in one.metrics["starts"]] == ["aligned"]
+    none = mm.register((X, F), (Y, F), opts.replace(initialization="none"))
+    assert [s["start"] for s in none.metrics["starts"]] == ["rest"]
 
 
 def test_source_field_resolution_is_capped_and_still_covers_the_box(monkeypatch):
@@ -313,11 +321,11 @@ def test_a_start_stops_early_when_merged_or_outstretched():
     assert reg._redundant_start(start("rest", X0), start("aligned", X0.copy())) is None
     # the choice at start_choice_modes: the least stretched run that fits is kept
     a, b = start("rest", stretched), start("aligned", near)
-    assert reg._not_chosen(a, b) is a and a.stopped == 4 and a.reason == "not chosen"
+    assert reg._choose_now([a, b]) is b and a.stopped == 4 and a.reason == "not chosen"
     assert np.isfinite(a.energy) and np.isfinite(b.energy) and b.strain < a.strain
     # ... and the guard: an unstretched run far from the target is not kept
     a, b = start("rest", fit.run.vertices), start("aligned", far)
-    assert reg._not_chosen(a, b) is b and b.reason == "not chosen" and a.stopped is None
+    assert reg._choose_now([a, b]) is a and b.reason == "not chosen" and a.stopped is None
 
 
 def test_the_choice_between_starts_made_early_is_the_final_choice_at_that_stage():
@@ -325,7 +333,7 @@ def test_the_choice_between_starts_made_early_is_the_final_choice_at_that_stage(
     modes keeps, and only it goes on to ``modes``."""
     X, F = asymmetric_blob()
     Y = bend(X, 0.4, axis=2, towards=0) + [0.05, 0.0, 0.0]
-    opts = mm.RegistrationOptions(grid=16, modes=5, start_check_modes=99)
+    opts = mm.RegistrationOptions(grid=16, modes=5, start_check_modes=99, icp_start=False)
     short = mm.register((X, F), (Y, F), opts.replace(modes=3))
     r = mm.register((X, F), (Y, F), opts.replace(start_choice_modes=3))
     starts = {s["start"]: s for s in r.metrics["starts"]}
@@ -349,7 +357,8 @@ def test_two_starts_in_lockstep_stop_one_and_keep_the_other_run_unchanged():
     as merged; the run that goes on is the same as without early stops."""
     X, F = asymmetric_blob()
     Y = bend(X, 0.4, axis=2, towards=0) + [0.05, 0.0, 0.0]
-    opts = mm.RegistrationOptions(grid=16, modes=5, start_check_modes=2, start_merge_distance=0.02)
+    opts = mm.RegistrationOptions(grid=16, modes=5, start_check_modes=2, start_merge_distance=0.02,
+                                  icp_start=False)
     events = []
     r = mm.register((X, F), (Y, F), opts, ground_truth=Y, progress=events.append)
     full = mm.register((X, F), (Y, F), opts.replace(start_check_modes=99), ground_truth=Y)
@@ -362,6 +371,71 @@ def test_two_starts_in_lockstep_stop_one_and_keep_the_other_run_unchanged():
     assert starts[kept]["stopped_after_modes"] is None
     full_starts = {s["start"]: s for s in full.metrics["starts"]}
     assert all(s["stopped_after_modes"] is None for s in full_starts.values())
+    assert starts[kept]["evaluations"] == full_starts[kept]["evaluations"]
+    assert r.evaluations < full.evaluations
+    if full.metrics["start"] == kept:
+        np.testing.assert_array_equal(r.vertices, full.vertices)
+
+
+def test_icp_align_is_trimeshs_icp_and_recovers_a_rigid_motion_and_a_scale():
+    """Identity: the iteration of ``trimesh.registration.icp`` (closest points from Open3D
+    instead of trimesh); known answers: a rigid motion and a similarity of the source."""
+    import trimesh
+    from trimesh.registration import icp
+
+    X, F = asymmetric_blob()
+    R = Rotation.from_rotvec([0.15, -0.25, 0.2]).as_matrix()
+    t = np.array([0.05, -0.02, 0.03])
+    # a bent copy, turned: the answer is no exact fit, so both must follow the same path
+    Y = bend(X, 0.5, axis=2, towards=0) @ R.T + t
+    ours = icp_align(X, Y, F)
+    ref, _, cost = icp(X, trimesh.Trimesh(Y, F, process=False), max_iterations=100, threshold=1e-10,
+                       reflection=False, scale=False, translation=True)
+    np.testing.assert_allclose(ours.matrix, ref[:3], atol=2e-4)
+    assert ours.cost == pytest.approx(cost, rel=1e-3) and ours.scale == pytest.approx(1.0)
+    # known answers
+    rigid = icp_align(X, X @ R.T + t, F)
+    np.testing.assert_allclose(rigid.matrix, np.c_[R, t], atol=1e-4)
+    assert rigid.cost < 1e-9 and rigid.apply(X) == pytest.approx(X @ R.T + t, abs=1e-4)
+    # ICP converges linearly: a scale of 1.2 takes about 180 iterations
+    similar = icp_align(X, 1.2 * X @ R.T + t, F, scale=True, max_iterations=300)
+    assert similar.scale == pytest.approx(1.2, abs=1e-3)
+    np.testing.assert_allclose(similar.matrix, np.c_[1.2 * R, t], atol=1e-3)
+    with pytest.raises(ValueError, match="X must be"):
+        icp_align(X[:2], Y, F)
+
+
+def test_icp_start_needs_a_target_mesh():
+    """With the target given as an SDF there is no surface for ICP: two starts, logged."""
+    from morphmodes_vol.sdf import DenseTargetSDF, Grid
+
+    X, F = asymmetric_blob()
+    Y = bend(X, 0.5, axis=2, towards=0)
+    lo, hi = Y.min(0) - 0.3, Y.max(0) + 0.3
+    sdf = DenseTargetSDF.from_mesh(Y, F, Grid.covering(lo, hi, 24))
+    reg = mm.Registration((X, F), sdf, mm.RegistrationOptions(grid=16, modes=2))
+    r = reg.run()
+    assert [s["start"] for s in r.metrics["starts"]] == ["rest", "aligned"]
+    with pytest.raises(ValueError, match="target mesh"):
+        reg.icp_alignment()
+
+
+def test_three_starts_in_lockstep_merge_into_one():
+    """A translated bend: all three starts reach the same answer, two stop as merged and the
+    run that goes on is the same as without early stops."""
+    X, F = asymmetric_blob()
+    Y = bend(X, 0.4, axis=2, towards=0) + [0.05, 0.0, 0.0]
+    opts = mm.RegistrationOptions(grid=16, modes=5, start_check_modes=2, start_merge_distance=0.05)
+    events = []
+    r = mm.register((X, F), (Y, F), opts, progress=events.append)
+    full = mm.register((X, F), (Y, F), opts.replace(start_check_modes=99))
+    starts = {s["start"]: s for s in r.metrics["starts"]}
+    assert set(starts) == {"rest", "aligned", "icp"} == {e.start for e in events}
+    stopped = [s for s in starts.values() if s["stopped_after_modes"] is not None]
+    assert len(stopped) == 2 and all(s["stop_reason"] == "merged" for s in stopped)
+    kept = r.metrics["start"]
+    assert starts[kept]["stopped_after_modes"] is None
+    full_starts = {s["start"]: s for s in full.metrics["starts"]}
     assert starts[kept]["evaluations"] == full_starts[kept]["evaluations"]
     assert r.evaluations < full.evaluations
     if full.metrics["start"] == kept:
