@@ -160,8 +160,8 @@ class RegistrationOptions:
         A rotated start wins only when its energy is below ``init_switch`` times the
         unrotated start's (an orientation prior; docs/method.md has the measurements).
     init_keep_rest : bool
-        With an initialization, run Algorithm 1 both from the rest pose (the paper's start)
-        and from the aligned start, and keep the result that stretches the source's edges
+        With an initialization, run Algorithm 1 from the rest pose (the paper's start) as
+        well as from the aligned start (and the ICP start, ``icp_start``), and keep the result that stretches the source's edges
         least (:func:`morphmodes_vol.metrics.edge_strain`) among those whose objective (Eq. 3
         on the full grid plus the isometry prior and landmarks when on) is within
         ``select_energy_factor`` of the lowest; ``False`` runs from the aligned start only.
@@ -177,22 +177,24 @@ class RegistrationOptions:
         prior, every factor from 1.25 to 10 kept the same start on the 18 poses
         (docs/method.md).
     start_check_modes : int
-        With two starts, the runs advance in lockstep, one mode at a time, and from this
-        many modes on one of them stops early when the other makes it redundant (the two
-        tests below). Above ``modes``: never. The defaults were read off the 30 pairs of the
-        accuracy study: 17% fewer evaluations, no kept result worse by more than 1e-4
-        (docs/method.md, "Initialization and two starts", item 6).
+        With several starts, the runs advance in lockstep, one mode at a time, and from this
+        many modes on a run stops early when another makes it redundant (the two tests
+        below, pair by pair). Above ``modes``: never. The defaults were read off the 30 pairs
+        of the accuracy study (docs/method.md, "Initialization and two starts", items 6 and
+        9).
     start_merge_distance : float
-        The two runs' vertices are closer than this RMS distance to each other (normalized
+        Two runs' vertices are closer than this RMS distance to each other (normalized
         units): the one that stretches the edges more stops. ``0``: never merged.
     start_strain_ratio : float
-        A run's edge strain is more than this times the other's, and the other's objective
+        A run's edge strain is more than this times another's, and the other's objective
         is within ``select_energy_factor`` of its own: it stops (the final selection would
         not keep it). ``inf``: never.
     start_choice_modes : int or None
-        With two starts still running after this many modes, the final choice
+        With several starts still running after this many modes, the final choice
         (``init_keep_rest``) is made there and only the chosen run goes on to ``modes``: the
-        deep modes refine one run, not two. ``None`` (default): the choice is made at the end.
+        deep modes refine one run, not several (with ``modes=30``, the accuracy study's mean
+        fell by 5% at 22% more evaluations; docs/method.md, "More modes"). At or above
+        ``modes`` (as with the default 20 modes), or ``None``: the choice is made at the end.
     isometry_weight : float
         Weight of the isometry prior (:mod:`morphmodes_vol.isometry`), added to Eq. (3): a
         penalty on the edges whose log stretch differs from the surface's mean by more than
@@ -255,8 +257,8 @@ class RegistrationOptions:
     select_energy_factor: float = 10.0
     start_check_modes: int = 4
     start_merge_distance: float = 0.005
-    start_strain_ratio: float = 2.5
-    start_choice_modes: int | None = None
+    start_strain_ratio: float = 2.0
+    start_choice_modes: int | None = 20
     init_lm_iterations_per_stage: int = 3
     isometry_weight: float = 3e-4
     isometry_tolerance: float = 0.2
