@@ -6,7 +6,7 @@ fast path before the initialization stage; other options at their defaults).
                               [--big-grid 128] [--out results/scaling] [--set KEY=VALUE ...]
     make scaling
 
-``--set initialization=rigid`` runs the default settings instead (alignment, two starts).
+``--set initialization=rigid`` runs the default settings instead (the alignments, three starts).
 
 Meshes: lion-reference and a lion pose from ``../shared/data``, refined by midpoint
 subdivision applied to the same faces of both, so vertex ``i`` still corresponds
