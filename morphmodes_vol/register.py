@@ -77,10 +77,13 @@ class RegistrationResult:
         (:func:`morphmodes_vol.metrics.shape_metrics`), ground-truth errors when a ground
         truth was given, landmark distances when landmarks were (``initial_landmark_rms``,
         ``landmark_rms`` in target units, ``landmark_rms_fraction`` of its diagonal).
-        ``start``: the start whose run was kept; ``starts``: one entry per start
-        (``start``, the full-grid ``energy`` and ``edge_strain`` its run ended or was judged
-        with, ``evaluations``, and ``stopped_after_modes`` / ``stop_reason``, ``merged`` or
-        ``outstretched``, when it was stopped early; ``None`` otherwise).
+        ``start``: the start whose run was kept (``rest``, ``aligned`` or ``icp``);
+        ``starts``: one entry per start (``start``, the full-grid ``energy`` and
+        ``edge_strain`` its run ended or was judged with, ``evaluations``, and
+        ``stopped_after_modes`` / ``stop_reason``, ``merged``, ``outstretched`` or
+        ``not chosen``, when it was stopped early; ``None`` otherwise); ``init_*`` and
+        ``icp_*``: the two alignments (:meth:`InitialAlignment.summary`,
+        :meth:`IcpAlignment.summary`).
     correspondence_faces : (n,) int64 or None
         For every registered vertex, the closest target face (``None`` when the target was
         given as an SDF grid: it has no faces).

@@ -114,7 +114,7 @@ def main() -> int:
     ap.add_argument("--out", default=str(ROOT / "results" / "scaling"))
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                     help="RegistrationOptions overrides, e.g. initialization=rigid (the default "
-                         "settings' two starts instead of one run from the rest pose)")
+                         "settings' three starts instead of one run from the rest pose)")
     args = ap.parse_args()
     overrides = parse_overrides(args.set)
     settings = ", ".join(args.set) if args.set else "--optimizer lm --init none"

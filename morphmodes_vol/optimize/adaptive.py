@@ -370,7 +370,7 @@ class AdaptiveRun:
     """Algorithm 1 from one start, advanced one stage (one mode) at a time.
 
     :func:`optimize_adaptive` is ``AdaptiveRun(...)`` advanced until :attr:`done`;
-    :meth:`morphmodes_vol.Registration.run` advances two starts in lockstep so that it can
+    :meth:`morphmodes_vol.Registration.run` advances the starts in lockstep so that it can
     stop one early (``start_merge_distance``, ``start_strain_ratio``). Parameters as in
     :func:`optimize_adaptive`; the constructor evaluates the energy at the start.
 
