@@ -385,27 +385,34 @@ class Registration:
     def _finish(self, r: "_StartRun") -> None:
         """Keep a run's result, SDF time, edge strain and (when it ran to the end) objective;
         let its evaluator go."""
+        self._state_of(r)  # the strain at the run's last state
         r.result = r.run.result()
         r.sdf_seconds = r.energy_term.seconds
-        r.strain = edge_strain(self.X0, r.result.vertices, self.source_faces)
         if r.stopped is None:  # a stopped run keeps the objective it was judged by (or NaN)
             r.energy = self._comparable_energy(r.result)
-        r.run = r.energy_term = None
+        r.run = r.energy_term = r.vertices = None
+
+    def _state_of(self, r: "_StartRun") -> np.ndarray:
+        """A running start's vertices ``(n, 3)`` now, its edge strain left in ``r.strain``;
+        computed once per stage, however many pairs and choices ask."""
+        if r.seen != r.run.stage:
+            r.seen, r.vertices = r.run.stage, r.run.vertices
+            r.strain = edge_strain(self.X0, r.vertices, self.source_faces)
+        return r.vertices
 
     def _objective_of(self, r: "_StartRun") -> float:
         """The full-grid objective of a running start's current state, computed once per
         stage."""
         if r.judged != r.run.stage:
-            r.judged, r.energy = r.run.stage, self._objective(r.run.vertices)
+            r.judged, r.energy = r.run.stage, self._objective(self._state_of(r))
         return r.energy
 
     def _redundant_start(self, a: "_StartRun", b: "_StartRun") -> "_StartRun | None":
         """The run of ``a``, ``b`` (at the same stage) that need not go on, or ``None``;
         marks it stopped."""
         o = self.options
-        Xa, Xb = a.run.vertices, b.run.vertices
-        sa = edge_strain(self.X0, Xa, self.source_faces)
-        sb = edge_strain(self.X0, Xb, self.source_faces)
+        Xa, Xb = self._state_of(a), self._state_of(b)
+        sa, sb = a.strain, b.strain
         stage = a.run.stage
         distance = float(np.sqrt(np.mean(np.sum((Xa - Xb) ** 2, axis=1))))
         if distance < o.start_merge_distance:
@@ -431,8 +438,7 @@ class Registration:
         """The final selection (:func:`_select_start`) among ``runs`` (at the same stage),
         made now: the others are marked stopped (*not chosen*); returns the kept run."""
         for r in runs:
-            self._objective_of(r)
-            r.strain = edge_strain(self.X0, r.run.vertices, self.source_faces)
+            self._objective_of(r)  # and the strain, by _state_of
         kept = _select_start(runs, self.options.select_energy_factor)
         for r in runs:
             if r is not kept:
@@ -589,6 +595,8 @@ class _StartRun:
     stopped: int | None = None
     reason: str | None = None
     judged: int | None = None  # the stage at which ``energy`` was computed while running
+    seen: int | None = None  # the stage of ``vertices`` and ``strain`` while running
+    vertices: np.ndarray | None = None
 
 
 def _labelled(progress: Callable[[ProgressEvent], None], label: str) -> Callable[[ProgressEvent], None]:
