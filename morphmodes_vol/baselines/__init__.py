@@ -2,7 +2,8 @@
 registered vertices in the source's original frame and vertex order, the source's faces,
 ``timings`` (seconds) and ``metrics`` (:mod:`morphmodes_vol.metrics`, same keys).
 
-- :func:`rigid_icp`: rigid ICP (trimesh ``registration.icp``, no reflection, no scale);
+- :func:`rigid_icp`: rigid ICP (trimesh ``registration.icp``'s iteration on Open3D closest points,
+  no reflection, no scale);
 - :func:`nricp`: non-rigid ICP of Amberg et al. 2007 (trimesh ``registration.nricp_amberg``),
   alone or after rigid ICP (``rigid_first=True``, the paper's RICP+NRICP);
 - :func:`full_space_sdf`: the SDF energy of Eq. (3) optimized over every vertex, optionally
