@@ -76,6 +76,8 @@ def _options_from_args(args) -> RegistrationOptions:
             changes["initialization"] = "none"
         if args.optimizer == "paper" and getattr(args, "isometry_weight", None) is None:  # and has Eq. (3) alone
             changes["isometry_weight"] = 0.0
+        if args.optimizer == "paper" and getattr(args, "coarse_starts", None) is None:  # and one pass
+            changes["coarse_starts"] = False
     if args.quadrature is not None:
         changes["quadrature"] = args.quadrature
     if args.memory_limit is not None:
@@ -90,6 +92,8 @@ def _options_from_args(args) -> RegistrationOptions:
         changes["initialization"] = args.init
     if getattr(args, "isometry_weight", None) is not None:
         changes["isometry_weight"] = args.isometry_weight
+    if getattr(args, "coarse_starts", None) is not None:
+        changes["coarse_starts"] = args.coarse_starts
     return RegistrationOptions().replace(**changes)
 
 
@@ -117,6 +121,10 @@ def _add_common(p: argparse.ArgumentParser, default_grid: int, default_modes: in
                    help="global alignment before the optimization: a rigid motion or similarity "
                         "minimizing the SDF energy from several orientations (default "
                         f"{d.initialization}; docs/method.md)")
+    p.add_argument("--coarse-starts", action=argparse.BooleanOptionalAction, default=None,
+                   help="run the starts on every other grid node first, then the kept one on the "
+                        "grid, and keep the less strained result (default on, off with "
+                        "--optimizer paper; docs/method.md)")
     p.add_argument("--isometry-weight", type=float, default=None, metavar="W",
                    help=f"weight of the isometry prior, a penalty on uneven edge stretch added to "
                         f"the SDF energy (0: the SDF energy alone, as the paper; default "

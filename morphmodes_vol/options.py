@@ -172,6 +172,12 @@ class RegistrationOptions:
         ``initialization="similarity"``), and choose among all the runs as
         ``init_keep_rest`` says. The volume fit of the initialization and the surface fit of
         ICP land in different basins on large pose changes (docs/method.md).
+    coarse_starts : bool
+        Run the starts first on every other node of the quadrature grid (spacing ``2h``),
+        then the start kept there again on the grid itself, and keep the less strained of the
+        two results by the rule that chooses among starts (docs/method.md, "Coarse starts").
+        ``True`` (default): on the accuracy study's 30 pairs the mean error fell from 0.0525
+        to 0.049 and no pair is worse than RICP+NRICP; ``False``: one pass on the grid.
     select_energy_factor : float
         See ``init_keep_rest``; at least 1 (``1``: the lowest objective). With the isometry
         prior, every factor from 1.25 to 10 kept the same start on the 18 poses
@@ -260,6 +266,7 @@ class RegistrationOptions:
     start_strain_ratio: float = 2.0
     start_choice_modes: int | None = 20
     init_lm_iterations_per_stage: int = 3
+    coarse_starts: bool = True
     isometry_weight: float = 3e-4
     isometry_tolerance: float = 0.2
 
@@ -267,9 +274,10 @@ class RegistrationOptions:
     def paper_faithful(cls) -> "RegistrationOptions":
         """The paper's settings as this library implements them (issue 2's defaults):
         Algorithm 1's gradient descent on the full grid, from the rest pose (no
-        initialization stage), Eq. (3) alone (no isometry prior), 20 modes."""
+        initialization stage, one run on one grid), Eq. (3) alone (no isometry prior), 20
+        modes."""
         return cls(optimizer="paper", quadrature="full", initialization="none", modes=20,
-                   isometry_weight=0.0)
+                   isometry_weight=0.0, coarse_starts=False)
 
     def __post_init__(self) -> None:
         def need(cond: bool, name: str, what: str) -> None:
@@ -339,6 +347,7 @@ class RegistrationOptions:
         need(_is_real(self.init_switch) and 0 <= self.init_switch <= 1, "init_switch", "a float in [0, 1]")
         need(isinstance(self.init_keep_rest, bool), "init_keep_rest", "True or False")
         need(isinstance(self.icp_start, bool), "icp_start", "True or False")
+        need(isinstance(self.coarse_starts, bool), "coarse_starts", "True or False")
         need(_is_int(self.coarse_modes) and self.coarse_modes >= 0, "coarse_modes", "a non-negative integer")
         need(_is_int(self.init_lm_iterations_per_stage) and self.init_lm_iterations_per_stage >= 1,
              "init_lm_iterations_per_stage", "a positive integer")

@@ -36,6 +36,14 @@ __all__ = ["register", "Registration", "RegistrationResult", "ground_truth_error
 log = logging.getLogger(__name__)
 
 
+COARSE_SUFFIX = " (coarse)"
+"""Added to a start's name for its run in the coarse pass (``coarse_starts``)."""
+
+MIN_COARSE_NODES = 16
+"""Fewest nodes along the longest side of the coarse pass's grid (``coarse_starts``): a
+coarser grid than this is not run."""
+
+
 def _is_closed(F: np.ndarray) -> bool:
     """Every undirected edge is shared by exactly two triangles (closed and edge-manifold)."""
     edges = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
@@ -77,8 +85,10 @@ class RegistrationResult:
         (:func:`morphmodes_vol.metrics.shape_metrics`), ground-truth errors when a ground
         truth was given, landmark distances when landmarks were (``initial_landmark_rms``,
         ``landmark_rms`` in target units, ``landmark_rms_fraction`` of its diagonal).
-        ``start``: the start whose run was kept (``rest``, ``aligned`` or ``icp``);
-        ``starts``: one entry per start (``start``, the full-grid ``energy`` and
+        ``start``: the start whose run was kept (``rest``, ``aligned`` or ``icp``; with
+        ``coarse_starts``, the coarse pass's runs are ``rest (coarse)`` and so on, and the
+        fine run has its start's plain name);
+        ``starts``: one entry per run (``start``, the full-grid ``energy`` and
         ``edge_strain`` its run ended or was judged with, ``evaluations``, and
         ``stopped_after_modes`` / ``stop_reason``, ``merged``, ``outstretched`` or
         ``not chosen``, when it was stopped early; ``None`` otherwise); ``init_*`` and
@@ -113,8 +123,8 @@ class RegistrationResult:
 
     @property
     def evaluations(self) -> int:
-        """Number of source-SDF evaluations on the quadrature, over every start
-        (``metrics["starts"]``; the initialization's coarse-grid evaluations are
+        """Number of source-SDF evaluations on the quadrature, over every run, the coarse
+        pass's included (``metrics["starts"]``; the initialization's coarse-grid evaluations are
         ``metrics["init_evaluations"]``, which sample a precomputed field, not the mesh)."""
         return int(self.metrics.get("evaluations_all_starts", self.history.evaluations))
 
@@ -260,6 +270,13 @@ class Registration:
             sdf = CoarseToFine(coarse, sdf, o.coarse_modes)
         return self._with_terms(sdf)
 
+    def coarse_energy(self):
+        """A fresh evaluator of the objective on every other node of the quadrature grid
+        (spacing ``2h``, the fine grid's target values subsampled, band widths in its own
+        cells), for the coarse pass of ``coarse_starts``."""
+        grid, idx = every_other_node(self.quadrature)
+        return self._with_terms(self._quadrature_energy(grid, self.g[idx], self.Q[idx]))
+
     def _with_terms(self, sdf):
         """``sdf`` (Eq. 3 on some quadrature) plus the terms the options and inputs add: the
         isometry prior (:mod:`morphmodes_vol.isometry`) and the landmarks
@@ -338,7 +355,7 @@ class Registration:
         the full grid, comparable between runs."""
         return float(self._with_terms(self.full_energy()).evaluate(X).energy)
 
-    def _run_starts(self, starts, progress) -> list["_StartRun"]:
+    def _run_starts(self, starts, progress, energy=None) -> list["_StartRun"]:
         """Algorithm 1 from every start, advanced in lockstep one stage (mode) at a time.
 
         After each stage from ``start_check_modes`` on, a run stops early when another
@@ -352,17 +369,18 @@ class Registration:
           of its own: the final selection (:func:`_select_start`) would not keep it.
 
         After ``start_choice_modes`` modes, the final selection is made among the runs
-        still going, and the others stop (*not chosen*).
+        still going, and the others stop (*not chosen*). ``energy``: the evaluator factory
+        (default :meth:`energy`).
         """
         o = self.options
         live = []
         for label, start, options in starts:
             if len(starts) > 1:
                 log.info("Algorithm 1 from start %s", label)
-            energy = self.energy()
+            evaluator = (energy or self.energy)()
             shown = progress if progress is None or len(starts) == 1 else _labelled(progress, label)
-            live.append(_StartRun(label, None, 0.0, float("nan"), float("nan"), energy_term=energy,
-                                  run=AdaptiveRun(energy, self.basis, options, shown, start)))
+            live.append(_StartRun(label, None, 0.0, float("nan"), float("nan"), energy_term=evaluator,
+                                  run=AdaptiveRun(evaluator, self.basis, options, shown, start)))
         runs = list(live)
         with single_threaded_blas():
             while live:
@@ -487,8 +505,22 @@ class Registration:
             starts = starts + aligned if self.options.init_keep_rest else aligned
         timings["initialize"] = time.perf_counter() - t
         t = time.perf_counter()
-        runs = self._run_starts(starts, progress)
-        chosen = _select_start([r for r in runs if r.stopped is None], self.options.select_energy_factor)
+        factor = self.options.select_energy_factor
+        coarse_pass = self.options.coarse_starts and max(self.quadrature.shape) >= 2 * MIN_COARSE_NODES
+        if self.options.coarse_starts and not coarse_pass:
+            log.info("grid of %d nodes: too coarse for a coarse pass (coarse_starts)", max(self.quadrature.shape))
+        if coarse_pass:
+            # every start on the coarse grid, then the kept one again on the fine grid; the
+            # less strained of the two results is kept (docs/method.md, "Coarse starts")
+            coarse = [(label + COARSE_SUFFIX, start, options) for label, start, options in starts]
+            runs = self._run_starts(coarse, progress, self.coarse_energy)
+            kept = _select_start([r for r in runs if r.stopped is None], factor)
+            fine = [s for c, s in zip(coarse, starts) if c[0] == kept.label]
+            runs += self._run_starts(fine, progress)
+            chosen = _select_start([kept, runs[-1]], factor)
+        else:
+            runs = self._run_starts(starts, progress)
+            chosen = _select_start([r for r in runs if r.stopped is None], factor)
         out, first = chosen.result, runs[0].result
         timings["optimize"] = time.perf_counter() - t
         timings["sdf_queries"] = sum(r.sdf_seconds for r in runs)
@@ -537,6 +569,9 @@ class Registration:
                               "stopped_after_modes": r.stopped, "stop_reason": r.reason}
                              for r in runs]
         metrics["evaluations_all_starts"] = sum(r.result.history.evaluations for r in runs)
+        # of which on the coarse pass's grid (coarse_starts), each a few times cheaper
+        metrics["coarse_evaluations_all_starts"] = sum(r.result.history.evaluations for r in runs
+                                                       if r.label.endswith(COARSE_SUFFIX))
         # of which after a band refresh, querying only the points new to the band
         metrics["partial_evaluations_all_starts"] = sum(r.result.history.partial_evaluations for r in runs)
         if ground_truth is not None:

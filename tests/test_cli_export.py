@@ -109,6 +109,9 @@ def test_optimizer_flag_brings_its_quadrature_unless_given():
     paper = options("--optimizer", "paper")
     assert paper == mm_options().paper_faithful().replace(modes=paper.modes, grid=paper.grid)
     assert options("--optimizer", "paper", "--init", "rigid").initialization == "rigid"
+    assert default.coarse_starts and not paper.coarse_starts
+    assert not options("--no-coarse-starts").coarse_starts
+    assert options("--optimizer", "paper", "--coarse-starts").coarse_starts
     fast = options("--optimizer", "lm")
     assert (fast.optimizer, fast.quadrature) == ("lm", "band")
     mixed = options("--optimizer", "lm", "--quadrature", "full")

@@ -192,8 +192,11 @@ def test_initialization_options_are_checked():
         mm.RegistrationOptions(init_switch=1.5)
     with pytest.raises(mm.OptionError):
         mm.RegistrationOptions(init_candidates=0)
+    with pytest.raises(mm.OptionError, match="coarse_starts"):
+        mm.RegistrationOptions(coarse_starts=1)
     p = mm.RegistrationOptions.paper_faithful()
     assert p.initialization == "none" and p.optimizer == "paper" and p.quadrature == "full"
+    assert not p.coarse_starts
 
 
 def test_cli_init_flag_reaches_the_options_and_the_report(tmp_path, capsys):
@@ -440,3 +443,59 @@ def test_three_starts_in_lockstep_merge_into_one():
     assert r.evaluations < full.evaluations
     if full.metrics["start"] == kept:
         np.testing.assert_array_equal(r.vertices, full.vertices)
+
+
+def test_coarse_energy_is_eq3_on_every_other_node():
+    """Hand check of the coarse pass's objective (full quadrature, no prior): ``(2h)^3`` times
+    the sum of squared residuals over every other node, the fine grid's target values
+    subsampled."""
+    from morphmodes_vol.quadrature import every_other_node
+
+    X, F = asymmetric_blob()
+    Y = bend(X, 0.5, axis=2, towards=0)
+    reg = mm.Registration((X, F), (Y, F), mm.RegistrationOptions(grid=32, quadrature="full",
+                                                                 isometry_weight=0.0))
+    grid, idx = every_other_node(reg.quadrature)
+    assert grid.cell_volume == pytest.approx(8 * reg.quadrature.cell_volume)
+    f = signed_distance(reg.X0, reg.source_sdf_faces, reg.Q[idx]).value
+    expected = grid.cell_volume * np.sum((f - reg.g[idx]) ** 2)
+    assert reg.coarse_energy().evaluate(reg.X0).energy == pytest.approx(expected, rel=1e-12)
+
+
+def test_coarse_starts_run_every_start_coarse_then_the_kept_one_on_the_grid():
+    """The coarse pass runs the three starts on every other node; the start it keeps runs
+    again on the grid, exactly as a one-pass registration from that start would; the result
+    kept is the selection rule's choice between the two."""
+    from morphmodes_vol.register import _select_start, _StartRun
+
+    X, F = asymmetric_blob()
+    Y = bend(X, 0.6, axis=2, towards=0) + [0.03, 0.0, 0.0]
+    opts = mm.RegistrationOptions(grid=32, modes=3, start_check_modes=99)
+    r = mm.register((X, F), (Y, F), opts, ground_truth=Y)
+    starts = r.metrics["starts"]
+    labels = [s["start"] for s in starts]
+    assert labels[:3] == ["rest (coarse)", "aligned (coarse)", "icp (coarse)"] and len(labels) == 4
+
+    def as_run(s):
+        return _StartRun(s["start"], None, 0.0, s["energy"], s["edge_strain"])
+
+    coarse_kept = _select_start([as_run(s) for s in starts[:3]], opts.select_energy_factor)
+    assert labels[3] == coarse_kept.label.removesuffix(" (coarse)")
+    kept = _select_start([coarse_kept, as_run(starts[3])], opts.select_energy_factor)
+    assert r.metrics["start"] == kept.label
+    assert r.evaluations == sum(s["evaluations"] for s in starts)
+    assert r.metrics["coarse_evaluations_all_starts"] == sum(s["evaluations"] for s in starts[:3])
+
+    # from the rest pose alone: the fine run is the one-pass registration
+    none = opts.replace(initialization="none")
+    two = mm.register((X, F), (Y, F), none)
+    one = mm.register((X, F), (Y, F), none.replace(coarse_starts=False))
+    assert [s["start"] for s in two.metrics["starts"]] == ["rest (coarse)", "rest"]
+    fine, (alone,) = two.metrics["starts"][1], one.metrics["starts"]
+    assert fine["evaluations"] == alone["evaluations"]
+    assert fine["energy"] == pytest.approx(alone["energy"], rel=1e-12)
+    if two.metrics["start"] == "rest":
+        np.testing.assert_array_equal(two.vertices, one.vertices)
+    # a grid too coarse to halve: one pass
+    small = mm.register((X, F), (Y, F), none.replace(grid=24))
+    assert [s["start"] for s in small.metrics["starts"]] == ["rest"]

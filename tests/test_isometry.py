@@ -152,13 +152,15 @@ def test_bend_registered_with_the_prior(tolerance, slack):
     """A capsule bent by 60 degrees (its axis keeps its length; the surface stretches only
     across the bend, by up to about 20%): the registration with the prior recovers the
     vertices, stretches the surface less than the one without, and is about as accurate
-    (measured 0.033 without tolerance against 0.030 without the prior)."""
+    (measured 0.035 without tolerance against 0.029 without the prior). One pass on one grid
+    (``coarse_starts=False``), so both runs take the same path but for the prior: with the
+    coarse pass the run without the prior keeps its coarse result (0.026)."""
     V, F = capsule(height=1.0, radius=0.2, count=(16, 16))
     target = bend(V, np.deg2rad(60.0))
     results = {}
     for w in (0.0, 1e-4):
         results[w] = mm.register((V, F), (target, F), grid=32, modes=6, isometry_weight=w,
-                                 isometry_tolerance=tolerance, ground_truth=target)
+                                 isometry_tolerance=tolerance, ground_truth=target, coarse_starts=False)
     with_prior, without = results[1e-4], results[0.0]
     assert with_prior.metrics["ground_truth_error"] < 0.35 * with_prior.metrics["identity_error"]
     stretch = {w: log_stretch_variance(V, r.vertices, F) for w, r in results.items()}
