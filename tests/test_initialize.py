@@ -470,7 +470,7 @@ def test_coarse_starts_run_every_start_coarse_then_the_kept_one_on_the_grid():
 
     X, F = asymmetric_blob()
     Y = bend(X, 0.6, axis=2, towards=0) + [0.03, 0.0, 0.0]
-    opts = mm.RegistrationOptions(grid=32, modes=3, start_check_modes=99)
+    opts = mm.RegistrationOptions(grid=48, modes=3, start_check_modes=99)
     r = mm.register((X, F), (Y, F), opts, ground_truth=Y)
     starts = r.metrics["starts"]
     labels = [s["start"] for s in starts]
@@ -497,5 +497,5 @@ def test_coarse_starts_run_every_start_coarse_then_the_kept_one_on_the_grid():
     if two.metrics["start"] == "rest":
         np.testing.assert_array_equal(two.vertices, one.vertices)
     # a grid too coarse to halve: one pass
-    small = mm.register((X, F), (Y, F), none.replace(grid=24))
+    small = mm.register((X, F), (Y, F), none.replace(grid=40))
     assert [s["start"] for s in small.metrics["starts"]] == ["rest"]

@@ -153,8 +153,7 @@ def test_bend_registered_with_the_prior(tolerance, slack):
     across the bend, by up to about 20%): the registration with the prior recovers the
     vertices, stretches the surface less than the one without, and is about as accurate
     (measured 0.035 without tolerance against 0.029 without the prior). One pass on one grid
-    (``coarse_starts=False``), so both runs take the same path but for the prior: with the
-    coarse pass the run without the prior keeps its coarse result (0.026)."""
+    (``coarse_starts=False``), so the two runs differ by the prior alone."""
     V, F = capsule(height=1.0, radius=0.2, count=(16, 16))
     target = bend(V, np.deg2rad(60.0))
     results = {}
