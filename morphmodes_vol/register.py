@@ -512,7 +512,8 @@ class Registration:
             log.info("grid of %d nodes: too coarse for a coarse pass (coarse_starts)", max(self.quadrature.shape))
         if coarse_pass:
             # every start on the coarse grid, then the kept one again on the fine grid; the
-            # less strained of the two results is kept (docs/method.md, "Coarse starts")
+            # less strained of the two results is kept (docs/method.md, "Initialization and
+            # two starts", item 10)
             coarse = [(label + COARSE_SUFFIX, start, options) for label, start, options in starts]
             runs = self._run_starts(coarse, progress, self.coarse_energy)
             kept = _select_start([r for r in runs if r.stopped is None], factor)
