@@ -517,8 +517,7 @@ class Registration:
             coarse = [(label + COARSE_SUFFIX, start, options) for label, start, options in starts]
             runs = self._run_starts(coarse, progress, self.coarse_energy)
             kept = _select_start([r for r in runs if r.stopped is None], factor)
-            fine = [s for c, s in zip(coarse, starts) if c[0] == kept.label]
-            runs += self._run_starts(fine, progress)
+            runs += self._run_starts([starts[runs.index(kept)]], progress)  # runs keep the starts' order
             chosen = _select_start([kept, runs[-1]], factor)
         else:
             runs = self._run_starts(starts, progress)

@@ -129,7 +129,7 @@ def main() -> int:
 
     runs = [("vertices", size, 64) for size in args.vertices] if "vertices" in args.series else []
     if "grid" in args.series:
-        runs += [("grid", "5k", g) for g in args.grids if not ("vertices", "5k", g) in runs]
+        runs += [("grid", "5k", g) for g in args.grids if ("vertices", "5k", g) not in runs]
     if "memory" in args.series:
         runs.append(("memory", "45k", args.big_grid))
     rows = []
