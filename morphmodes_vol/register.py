@@ -90,7 +90,8 @@ class RegistrationResult:
         ``coarse_starts``, the coarse pass's runs are ``rest (coarse)`` and so on, and the
         fine run has its start's plain name);
         ``starts``: one entry per run (``start``, the full-grid ``energy`` and
-        ``edge_strain`` its run ended or was judged with, ``evaluations``, and
+        ``edge_strain`` its run ended or was judged with (a coarse run stopped early was
+        judged on the coarse pass's grid), ``evaluations``, and
         ``stopped_after_modes`` / ``stop_reason``, ``merged``, ``outstretched`` or
         ``not chosen``, when it was stopped early; ``None`` otherwise); ``init_*`` and
         ``icp_*``: the two alignments (:meth:`InitialAlignment.summary`,
@@ -174,6 +175,7 @@ class Registration:
                  landmarks: Landmarks | str | os.PathLike | tuple | None = None):
         self.options = options if options is not None else RegistrationOptions()
         self.timings: dict[str, float] = {}
+        self._objectives: dict = {}  # the comparison objectives' evaluators (_cached)
 
         t = time.perf_counter()
         # 4 vertices: the least that determines the affine map of the first mode, and the
@@ -354,9 +356,25 @@ class Registration:
     def _objective(self, X: np.ndarray) -> float:
         """The objective at the vertices ``X (n, 3)`` (normalized frame) with Eq. (3) on
         the full grid, comparable between runs."""
-        return float(self._with_terms(self.full_energy()).evaluate(X).energy)
+        return float(self._cached("full", lambda: self._with_terms(self.full_energy())).evaluate(X).energy)
 
-    def _run_starts(self, starts, progress, energy=None) -> list["_StartRun"]:
+    def _coarse_objective(self, X: np.ndarray) -> float:
+        """:meth:`_objective` with Eq. (3) on every node of the coarse pass's grid (every
+        other node of the quadrature grid): what the coarse pass compares its runs by."""
+        def build():
+            grid, idx = every_other_node(self.quadrature)
+            return self._with_terms(self._quadrature_energy(grid, self.g[idx], self.Q[idx], "full"))
+        return float(self._cached("coarse full", build).evaluate(X).energy)
+
+    def _cached(self, name: str, build: Callable[[], object]) -> object:
+        """An objective evaluator built once per options (its evaluations keep no state but
+        counters)."""
+        key = (name, self.options)
+        if key not in self._objectives:
+            self._objectives[key] = build()
+        return self._objectives[key]
+
+    def _run_starts(self, starts, progress, energy=None, objective=None) -> list["_StartRun"]:
         """Algorithm 1 from every start, advanced in lockstep one stage (mode) at a time.
 
         After each stage from ``start_check_modes`` on, a run stops early when another
@@ -366,12 +384,14 @@ class Registration:
         - *merged*: the two runs' vertices are closer than ``start_merge_distance`` (RMS,
           normalized units) to each other; the one that stretches the edges more stops;
         - *outstretched*: a run's edge strain is more than ``start_strain_ratio`` times the
-          other's, and the other's objective (full grid) is within ``select_energy_factor``
+          other's, and the other's objective (``objective``) is within ``select_energy_factor``
           of its own: the final selection (:func:`_select_start`) would not keep it.
 
         After ``start_choice_modes`` modes, the final selection is made among the runs
         still going, and the others stop (*not chosen*). ``energy``: the evaluator factory
-        (default :meth:`energy`).
+        (default :meth:`energy`); ``objective``: what the runs are compared by while they
+        run (default :meth:`_objective`, Eq. 3 on the full grid). A run that ends is
+        judged by :meth:`_objective` whatever ``objective`` is.
         """
         o = self.options
         live = []
@@ -381,6 +401,7 @@ class Registration:
             evaluator = (energy or self.energy)()
             shown = progress if progress is None or len(starts) == 1 else _labelled(progress, label)
             live.append(_StartRun(label, None, 0.0, float("nan"), float("nan"), energy_term=evaluator,
+                                  objective=objective or self._objective,
                                   run=AdaptiveRun(evaluator, self.basis, options, shown, start)))
         runs = list(live)
         with single_threaded_blas():
@@ -409,7 +430,7 @@ class Registration:
         r.sdf_seconds = r.energy_term.seconds
         if r.stopped is None:  # a stopped run keeps the objective it was judged by (or NaN)
             r.energy = self._comparable_energy(r.result)
-        r.run = r.energy_term = r.vertices = None
+        r.run = r.energy_term = r.vertices = r.objective = None
 
     def _state_of(self, r: "_StartRun") -> np.ndarray:
         """A running start's vertices ``(n, 3)`` now, its edge strain left in ``r.strain``;
@@ -420,10 +441,10 @@ class Registration:
         return r.vertices
 
     def _objective_of(self, r: "_StartRun") -> float:
-        """The full-grid objective of a running start's current state, computed once per
-        stage."""
+        """The objective (``r.objective``) of a running start's current state, computed
+        once per stage."""
         if r.judged != r.run.stage:
-            r.judged, r.energy = r.run.stage, self._objective(self._state_of(r))
+            r.judged, r.energy = r.run.stage, r.objective(self._state_of(r))
         return r.energy
 
     def _redundant_start(self, a: "_StartRun", b: "_StartRun") -> "_StartRun | None":
@@ -441,8 +462,8 @@ class Registration:
             ratio = o.start_strain_ratio
             if np.isinf(ratio) or not max(sa, sb) > ratio * min(sa, sb):
                 return None
-            # the objectives are compared only when the strains call for it (two full-grid
-            # evaluations); the less stretched run must fit within select_energy_factor
+            # the objectives are compared only when the strains call for it (two evaluations
+            # on a full grid); the less stretched run must fit within select_energy_factor
             e_hi, e_lo = self._objective_of(hi), self._objective_of(lo)
             if not (np.isfinite(e_lo) and e_lo <= o.select_energy_factor * e_hi):
                 return None
@@ -515,7 +536,7 @@ class Registration:
             # less strained of the two results is kept (docs/method.md, "Initialization and
             # two starts", item 10)
             coarse = [(label + COARSE_SUFFIX, start, options) for label, start, options in starts]
-            runs = self._run_starts(coarse, progress, self.coarse_energy)
+            runs = self._run_starts(coarse, progress, self.coarse_energy, self._coarse_objective)
             kept = _select_start([r for r in runs if r.stopped is None], factor)
             runs += self._run_starts([starts[runs.index(kept)]], progress)  # runs keep the starts' order
             chosen = _select_start([kept, runs[-1]], factor)
@@ -633,6 +654,7 @@ class _StartRun:
     judged: int | None = None  # the stage at which ``energy`` was computed while running
     seen: int | None = None  # the stage of ``vertices`` and ``strain`` while running
     vertices: np.ndarray | None = None
+    objective: Callable[[np.ndarray], float] | None = None  # what it is judged by while running
 
 
 def _labelled(progress: Callable[[ProgressEvent], None], label: str) -> Callable[[ProgressEvent], None]:

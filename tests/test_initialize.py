@@ -462,6 +462,43 @@ def test_coarse_energy_is_eq3_on_every_other_node():
     assert reg.coarse_energy().evaluate(reg.X0).energy == pytest.approx(expected, rel=1e-12)
 
 
+def test_the_coarse_pass_compares_running_starts_on_its_own_grid(monkeypatch):
+    """The coarse pass judges its running starts by Eq. (3) on every other node (hand
+    checked), a few times cheaper than the fine grid; a run that ends is judged on the fine
+    grid, where the final choice is made."""
+    from morphmodes_vol.quadrature import every_other_node
+
+    X, F = asymmetric_blob()
+    Y = bend(X, 0.5, axis=2, towards=0)
+    reg = mm.Registration((X, F), (Y, F), mm.RegistrationOptions(
+        grid=48, modes=3, start_choice_modes=2, start_check_modes=99, isometry_weight=0.0))
+    grid, idx = every_other_node(reg.quadrature)
+    f = signed_distance(reg.X0, reg.source_sdf_faces, reg.Q[idx]).value
+    expected = grid.cell_volume * np.sum((f - reg.g[idx]) ** 2)
+    assert reg._coarse_objective(reg.X0) == pytest.approx(expected, rel=1e-12)
+
+    calls = []
+    fine, coarse_grid = reg._objective, reg._coarse_objective
+    monkeypatch.setattr(reg, "_objective", lambda V: (calls.append("fine"), fine(V))[1])
+    coarse = lambda V: (calls.append("coarse"), coarse_grid(V))[1]  # noqa: E731
+    shifted = reg._start_coefficients(np.hstack([np.eye(3), [[0.02], [0.0], [0.0]]]))
+    starts = [("rest", None, reg.options), ("shifted", shifted, reg.options)]
+    runs = reg._run_starts(starts, None, reg.coarse_energy, coarse)
+    # both judged on the coarse grid after 2 modes (one is not chosen), the kept one on
+    # the fine grid when it ends after 3
+    assert calls == ["coarse", "coarse", "fine"]
+    assert sorted(r.reason or "" for r in runs) == ["", "not chosen"]
+    kept = next(r for r in runs if r.stopped is None)
+    assert kept.energy == pytest.approx(fine(kept.result.vertices), rel=1e-12)
+
+    # a registration: the three starts judged on the coarse grid after 2 modes, then the
+    # coarse pass's kept run and the fine run on the fine grid
+    calls.clear()
+    monkeypatch.setattr(reg, "_coarse_objective", coarse)
+    reg.run()
+    assert calls == ["coarse"] * 3 + ["fine"] * 2
+
+
 def test_coarse_starts_run_every_start_coarse_then_the_kept_one_on_the_grid():
     """The coarse pass runs the three starts on every other node; the start it keeps runs
     again on the grid, exactly as a one-pass registration from that start would; the result
