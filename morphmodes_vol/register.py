@@ -441,10 +441,10 @@ class Registration:
         return r.vertices
 
     def _objective_of(self, r: "_StartRun") -> float:
-        """The objective (``r.objective``) of a running start's current state, computed
-        once per stage."""
+        """The objective (``r.objective``, else :meth:`_objective`) of a running start's
+        current state, computed once per stage."""
         if r.judged != r.run.stage:
-            r.judged, r.energy = r.run.stage, r.objective(self._state_of(r))
+            r.judged, r.energy = r.run.stage, (r.objective or self._objective)(self._state_of(r))
         return r.energy
 
     def _redundant_start(self, a: "_StartRun", b: "_StartRun") -> "_StartRun | None":
@@ -654,7 +654,7 @@ class _StartRun:
     judged: int | None = None  # the stage at which ``energy`` was computed while running
     seen: int | None = None  # the stage of ``vertices`` and ``strain`` while running
     vertices: np.ndarray | None = None
-    objective: Callable[[np.ndarray], float] | None = None  # what it is judged by while running
+    objective: Callable[[np.ndarray], float] | None = None  # judged by while running (None: fine grid)
 
 
 def _labelled(progress: Callable[[ProgressEvent], None], label: str) -> Callable[[ProgressEvent], None]:
