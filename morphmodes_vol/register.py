@@ -267,18 +267,22 @@ class Registration:
         sdf = self._quadrature_energy(self.quadrature, self.g, self.Q)
         if o.coarse_modes > 0:
             # a grid refining across stages: every other node (spacing 2h) for the first
-            # coarse_modes stages; its target values are the fine grid's, subsampled
-            grid, idx = every_other_node(self.quadrature)
-            coarse = self._quadrature_energy(grid, self.g[idx], self.Q[idx])
-            sdf = CoarseToFine(coarse, sdf, o.coarse_modes)
+            # coarse_modes stages
+            sdf = CoarseToFine(self._coarse_sdf(), sdf, o.coarse_modes)
         return self._with_terms(sdf)
 
     def coarse_energy(self):
         """A fresh evaluator of the objective on every other node of the quadrature grid
         (spacing ``2h``, the fine grid's target values subsampled, band widths in its own
         cells), for the coarse pass of ``coarse_starts``."""
+        return self._with_terms(self._coarse_sdf())
+
+    def _coarse_sdf(self, kind: str | None = None) -> SDFEnergy | BandEnergy:
+        """Eq. (3) on every other node of the quadrature grid (spacing ``2h``, the fine
+        grid's target values subsampled), on the quadrature ``kind`` (as
+        :meth:`_quadrature_energy`)."""
         grid, idx = every_other_node(self.quadrature)
-        return self._with_terms(self._quadrature_energy(grid, self.g[idx], self.Q[idx]))
+        return self._quadrature_energy(grid, self.g[idx], self.Q[idx], kind)
 
     def _with_terms(self, sdf):
         """``sdf`` (Eq. 3 on some quadrature) plus the terms the options and inputs add: the
@@ -361,10 +365,8 @@ class Registration:
     def _coarse_objective(self, X: np.ndarray) -> float:
         """:meth:`_objective` with Eq. (3) on every node of the coarse pass's grid (every
         other node of the quadrature grid): what the coarse pass compares its runs by."""
-        def build():
-            grid, idx = every_other_node(self.quadrature)
-            return self._with_terms(self._quadrature_energy(grid, self.g[idx], self.Q[idx], "full"))
-        return float(self._cached("coarse full", build).evaluate(X).energy)
+        evaluator = self._cached("coarse full", lambda: self._with_terms(self._coarse_sdf("full")))
+        return float(evaluator.evaluate(X).energy)
 
     def _cached(self, name: str, build: Callable[[], object]) -> object:
         """An objective evaluator built once per options (its evaluations keep no state but
@@ -401,7 +403,7 @@ class Registration:
             evaluator = (energy or self.energy)()
             shown = progress if progress is None or len(starts) == 1 else _labelled(progress, label)
             live.append(_StartRun(label, None, 0.0, float("nan"), float("nan"), energy_term=evaluator,
-                                  objective=objective or self._objective,
+                                  objective=objective,
                                   run=AdaptiveRun(evaluator, self.basis, options, shown, start)))
         runs = list(live)
         with single_threaded_blas():
