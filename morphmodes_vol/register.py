@@ -79,8 +79,9 @@ class RegistrationResult:
         ``converged``, ``stage_cap``, ``max_iterations`` or ``rolled_back`` (see
         :class:`~morphmodes_vol.optimize.adaptive.AdaptiveResult`).
     timings : dict of str to float
-        Seconds per stage: ``preprocess``, ``target_sdf``, ``eigenbasis``, ``optimize``,
-        ``correspondence``.
+        Seconds per stage: ``preprocess``, ``target_sdf``, ``eigenbasis``, ``initialize``,
+        ``optimize``, ``correspondence``; ``sdf_queries``: the part of ``optimize`` spent in
+        source-SDF evaluations (the runs' and the comparisons').
     metrics : dict of str to float
         Energies, RMS SDF residuals, surface distance and degeneracy
         (:func:`morphmodes_vol.metrics.shape_metrics`), ground-truth errors when a ground
@@ -95,7 +96,14 @@ class RegistrationResult:
         ``stopped_after_modes`` / ``stop_reason``, ``merged``, ``outstretched`` or
         ``not chosen``, when it was stopped early; ``None`` otherwise); ``init_*`` and
         ``icp_*``: the two alignments (:meth:`InitialAlignment.summary`,
-        :meth:`IcpAlignment.summary`).
+        :meth:`IcpAlignment.summary`). Cost: ``evaluations_all_starts`` (every run's
+        source-SDF evaluations; ``coarse_evaluations_all_starts`` and
+        ``partial_evaluations_all_starts`` of them on the coarse pass's grid and after band
+        refreshes), ``comparison_evaluations`` (the objectives that compared runs, on every
+        node of the fine or the coarse grid, not among the former), ``points_queried``
+        (every point sent to the source mesh's closest-point queries, the alignment's source
+        field included) and ``full_grid_equivalents`` (that over the grid's nodes: the cost in
+        evaluations of Eq. 3 on the full grid, each of which ``--optimizer paper`` makes).
     correspondence_faces : (n,) int64 or None
         For every registered vertex, the closest target face (``None`` when the target was
         given as an SDF grid: it has no faces).
@@ -430,6 +438,7 @@ class Registration:
         self._state_of(r)  # the strain at the run's last state
         r.result = r.run.result()
         r.sdf_seconds = r.energy_term.seconds
+        r.points_queried = _points_queried(r.energy_term)
         if r.stopped is None:  # a stopped run keeps the objective it was judged by (or NaN)
             r.energy = self._comparable_energy(r.result)
         r.run = r.energy_term = r.vertices = r.objective = None
@@ -510,6 +519,7 @@ class Registration:
             ``ground_truth_error`` and ``identity_error`` to the metrics.
         """
         timings = dict(self.timings)
+        compared_before = _comparison_counters(self._objectives.values())
         t = time.perf_counter()
         starts: list[tuple[str, np.ndarray | None, RegistrationOptions]] = [("rest", None, self.options)]
         init_summary = {}
@@ -547,7 +557,9 @@ class Registration:
             chosen = _select_start([r for r in runs if r.stopped is None], factor)
         out, first = chosen.result, runs[0].result
         timings["optimize"] = time.perf_counter() - t
-        timings["sdf_queries"] = sum(r.sdf_seconds for r in runs)
+        # the comparisons' objectives (full or coarse grid) are source-SDF queries too
+        compared = np.subtract(_comparison_counters(self._objectives.values()), compared_before)
+        timings["sdf_queries"] = sum(r.sdf_seconds for r in runs) + float(compared[2])
         if len(runs) > 1:
             log.info("kept the start from the %s (edge strain %s, energy %s)", chosen.label,
                      ", ".join(f"{r.label} {r.strain:.3f}" for r in runs),
@@ -598,6 +610,16 @@ class Registration:
                                                        if r.label.endswith(COARSE_SUFFIX))
         # of which after a band refresh, querying only the points new to the band
         metrics["partial_evaluations_all_starts"] = sum(r.result.history.partial_evaluations for r in runs)
+        # the objectives that compared runs (every node of the fine or the coarse grid),
+        # not counted above
+        metrics["comparison_evaluations"] = int(compared[0])
+        # every point sent to the source mesh's closest-point queries: the runs' evaluations
+        # and band refreshes, the comparisons, the initial alignment's source field; over the
+        # grid's nodes, the cost in evaluations of Eq. (3) on the full grid (the paper's)
+        queried = (sum(r.points_queried for r in runs) + int(compared[1])
+                   + int(init_summary.get("init_field_nodes", 0)))
+        metrics["points_queried"] = queried
+        metrics["full_grid_equivalents"] = queried / self.Q.shape[0]
         if ground_truth is not None:
             truth = ground_truth if isinstance(ground_truth, np.ndarray) else as_mesh(ground_truth, "ground truth")[0]
             metrics["identity_error"] = ground_truth_error(self.source_vertices, truth)
@@ -657,6 +679,26 @@ class _StartRun:
     seen: int | None = None  # the stage of ``vertices`` and ``strain`` while running
     vertices: np.ndarray | None = None
     objective: Callable[[np.ndarray], float] | None = None  # judged by while running (None: fine grid)
+    points_queried: int = 0  # points its evaluator sent to the closest-point queries
+
+
+def _points_queried(energy) -> int:
+    """Points an evaluator (:meth:`Registration.energy` or :meth:`coarse_energy`) sent to the
+    source mesh's closest-point queries: at its evaluations and, on the band quadrature, at
+    the block centres its refreshes asked."""
+    while hasattr(energy, "inner"):  # added terms (isometry prior, landmarks)
+        energy = energy.inner
+    if isinstance(energy, CoarseToFine):
+        return _points_queried(energy.coarse) + _points_queried(energy.fine)
+    return int(energy.points_queried + getattr(energy, "centres_queried", 0))
+
+
+def _comparison_counters(evaluators) -> tuple[int, int, float]:
+    """Evaluations, points queried and seconds of the comparison objectives' evaluators
+    (:meth:`Registration._cached`), summed; ``run`` reports the difference it made."""
+    evaluators = list(evaluators)
+    return (sum(e.evaluations for e in evaluators), sum(_points_queried(e) for e in evaluators),
+            sum(e.seconds for e in evaluators))
 
 
 def _labelled(progress: Callable[[ProgressEvent], None], label: str) -> Callable[[ProgressEvent], None]:

@@ -536,3 +536,47 @@ def test_coarse_starts_run_every_start_coarse_then_the_kept_one_on_the_grid():
     # a grid too coarse to halve: one pass
     small = mm.register((X, F), (Y, F), none.replace(grid=40))
     assert [s["start"] for s in small.metrics["starts"]] == ["rest"]
+
+
+def test_points_queried_counts_every_query_of_the_source(monkeypatch):
+    """``metrics["points_queried"]`` is every point sent to the source mesh's closest-point
+    queries (counted here by wrapping the query): the runs' evaluations and band refreshes,
+    the comparisons between runs and the alignment's source field; ``full_grid_equivalents``
+    is that over the grid's nodes. With the paper's settings every evaluation is one full
+    grid and nothing else queries the source."""
+    import trimesh
+
+    import morphmodes_vol.quadrature as quadrature
+    import morphmodes_vol.sdf.source as source
+
+    X, F = asymmetric_blob()
+    # a target with other vertices, so the count can tell the two meshes apart
+    Y, FY = trimesh.remesh.subdivide(bend(X, 0.6, axis=2, towards=0) + [0.03, 0.0, 0.0], F)
+    assert len(Y) != len(X)
+    counted = []
+    query = source.closest_points
+
+    def counting(V, F_, Q, scene=None):
+        if len(V) == len(X):
+            counted.append(len(Q))
+        return query(V, F_, Q, scene=scene)
+
+    monkeypatch.setattr(source, "closest_points", counting)
+    monkeypatch.setattr(quadrature, "closest_points", counting)
+
+    reg = mm.Registration((X, F), (Y, FY), mm.RegistrationOptions(grid=48, modes=3))
+    nodes = reg.Q.shape[0]
+    m = reg.run().metrics
+    assert m["points_queried"] == sum(counted) > 0
+    assert m["full_grid_equivalents"] == pytest.approx(sum(counted) / nodes)
+    # the coarse pass's kept result and the fine run are judged on the full grid at least
+    assert m["comparison_evaluations"] >= 2
+    assert m["init_field_nodes"] in counted  # the alignment's one query of the source field
+
+    paper = mm.Registration((X, F), (Y, FY), mm.RegistrationOptions.paper_faithful().replace(
+        grid=16, modes=2, max_iterations=20))
+    counted.clear()
+    r = paper.run()
+    assert r.metrics["comparison_evaluations"] == 0
+    assert r.metrics["points_queried"] == sum(counted) == r.evaluations * paper.Q.shape[0]
+    assert r.metrics["full_grid_equivalents"] == r.evaluations
