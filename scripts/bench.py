@@ -165,7 +165,8 @@ def _row(pair: str, method: str, r: dict, nricp_wall: float | None) -> str:
     if notes:
         ev = f"{ev} ({', '.join(notes)})"
     if r.get("comparison_evaluations"):
-        ev = f"{ev} + {r['comparison_evaluations']} comparisons"
+        k = r["comparison_evaluations"]
+        ev = f"{ev} + {k} comparison{'s' if k > 1 else ''}"
     equivalents = f"{r['full_grid_equivalents']:.1f}" if r.get("full_grid_equivalents") is not None else ""
     spe = f"{1000 * r['seconds_per_evaluation']:.0f}" if "seconds_per_evaluation" in r else ""
     share = f"{100 * r['sdf_share_of_optimize']:.0f}%" if "sdf_share_of_optimize" in r else ""
