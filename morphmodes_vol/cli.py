@@ -149,7 +149,11 @@ def _add_target_sdf_args(p: argparse.ArgumentParser) -> None:
 
 def _summary(result, paths) -> str:
     m = result.metrics
-    lines = [f"status: {result.status}, {result.modes} modes, {result.evaluations} SDF evaluations, "
+    cost = ""
+    if "full_grid_equivalents" in m:
+        cost = (f" + {m['comparison_evaluations']} comparisons, the cost of "
+                f"{m['full_grid_equivalents']:.1f} evaluations on the full grid")
+    lines = [f"status: {result.status}, {result.modes} modes, {result.evaluations} SDF evaluations{cost}, "
              f"optimize {result.timings['optimize']:.1f}s"]
     if result.status == "rolled_back":
         lines.append("a NaN or infinite energy stopped the run: the result is its last good state")

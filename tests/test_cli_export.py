@@ -49,7 +49,11 @@ def test_register_writes_complete_outputs(pair, tmp_path, capsys):
     corr = np.load(out / "correspondence.npz")
     assert corr["faces"].shape == (len(V),) and corr["barycentrics"].shape == (len(V), 3)
     np.testing.assert_allclose(corr["barycentrics"].sum(1), 1.0, atol=1e-9)
-    assert "ground-truth error" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "ground-truth error" in printed
+    m = report["metrics"]
+    assert (f"{report['evaluations']} SDF evaluations + {m['comparison_evaluations']} comparisons, "
+            f"the cost of {m['full_grid_equivalents']:.1f} evaluations on the full grid") in printed
     assert not [p for p in out.iterdir() if p.name.endswith(".tmp")]
 
 
