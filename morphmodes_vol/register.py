@@ -90,9 +90,11 @@ class RegistrationResult:
         ``start``: the start whose run was kept (``rest``, ``aligned`` or ``icp``; with
         ``coarse_starts``, the coarse pass's runs are ``rest (coarse)`` and so on, and the
         fine run has its start's plain name);
-        ``starts``: one entry per run (``start``, the full-grid ``energy`` and
-        ``edge_strain`` its run ended or was judged with (a coarse run stopped early was
-        judged on the coarse pass's grid), ``evaluations``, and
+        ``starts``: one entry per run (``start``; the objective ``energy`` its run ended or
+        was last judged with, on every node of the grid (``energy_grid`` ``"fine"``) or of the
+        coarse pass's grid (``"coarse"``: a coarse run stopped early), after
+        ``energy_after_modes`` modes (both ``None`` and ``energy`` NaN when it never was);
+        its ``edge_strain`` when it ended or stopped; ``evaluations``; and
         ``stopped_after_modes`` / ``stop_reason``, ``merged``, ``outstretched`` or
         ``not chosen``, when it was stopped early; ``None`` otherwise); ``init_*`` and
         ``icp_*``: the two alignments (:meth:`InitialAlignment.summary`,
@@ -400,8 +402,9 @@ class Registration:
         After ``start_choice_modes`` modes, the final selection is made among the runs
         still going, and the others stop (*not chosen*). ``energy``: the evaluator factory
         (default :meth:`energy`); ``objective``: what the runs are compared by while they
-        run (default :meth:`_objective`, Eq. 3 on the full grid). A run that ends is
-        judged by :meth:`_objective` whatever ``objective`` is.
+        run (default :meth:`_objective`, Eq. 3 on the full grid; the coarse pass gives
+        :meth:`_coarse_objective`, and the report names the grid accordingly). A run that
+        ends is judged by :meth:`_objective` whatever ``objective`` is.
         """
         o = self.options
         live = []
@@ -441,6 +444,7 @@ class Registration:
         r.points_queried = _points_queried(r.energy_term)
         if r.stopped is None:  # a stopped run keeps the objective it was judged by (or NaN)
             r.energy = self._comparable_energy(r.result)
+            r.judged, r.energy_grid = r.run.stage, "fine"
         r.run = r.energy_term = r.vertices = r.objective = None
 
     def _state_of(self, r: "_StartRun") -> np.ndarray:
@@ -456,6 +460,7 @@ class Registration:
         current state, computed once per stage."""
         if r.judged != r.run.stage:
             r.judged, r.energy = r.run.stage, (r.objective or self._objective)(self._state_of(r))
+            r.energy_grid = "fine" if r.objective is None else "coarse"
         return r.energy
 
     def _redundant_start(self, a: "_StartRun", b: "_StartRun") -> "_StartRun | None":
@@ -600,7 +605,9 @@ class Registration:
         metrics.update(init_summary)
         metrics["edge_strain"] = chosen.strain
         metrics["start"] = chosen.label
-        metrics["starts"] = [{"start": r.label, "energy": r.energy, "edge_strain": r.strain,
+        metrics["starts"] = [{"start": r.label, "energy": r.energy, "energy_grid": r.energy_grid,
+                              "energy_after_modes": r.judged if r.energy_grid else None,
+                              "edge_strain": r.strain,
                               "evaluations": r.result.history.evaluations,
                               "stopped_after_modes": r.stopped, "stop_reason": r.reason}
                              for r in runs]
@@ -680,6 +687,7 @@ class _StartRun:
     vertices: np.ndarray | None = None
     objective: Callable[[np.ndarray], float] | None = None  # judged by while running (None: fine grid)
     points_queried: int = 0  # points its evaluator sent to the closest-point queries
+    energy_grid: str | None = None  # where ``energy`` was computed: "fine", "coarse" (None: never)
 
 
 def _points_queried(energy) -> int:

@@ -495,8 +495,13 @@ def test_the_coarse_pass_compares_running_starts_on_its_own_grid(monkeypatch):
     # coarse pass's kept run and the fine run on the fine grid
     calls.clear()
     monkeypatch.setattr(reg, "_coarse_objective", coarse)
-    reg.run()
+    starts = reg.run().metrics["starts"]
     assert calls == ["coarse"] * 3 + ["fine"] * 2
+    # the report says which grid each start's energy is on, and after how many modes
+    assert [(s["energy_grid"], s["energy_after_modes"]) for s in starts if s["stopped_after_modes"]] \
+        == [("coarse", 2)] * 2
+    assert [(s["energy_grid"], s["energy_after_modes"]) for s in starts if not s["stopped_after_modes"]] \
+        == [("fine", 3)] * 2
 
 
 def test_coarse_starts_run_every_start_coarse_then_the_kept_one_on_the_grid():
