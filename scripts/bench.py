@@ -13,7 +13,7 @@ wall time and peak resident memory are its own. Wall time covers everything from
 to written results: loading, preprocessing, target SDF, eigenbasis, optimization and export
 for ours; loading and the registration call for NRICP. The libraries each method uses are
 imported before its clock starts (``_import_libraries``; Open3D's import alone takes about
-0.5 s here): a per-process cost, paid once by a script that registers many pairs.
+0.4 s here): a per-process cost, paid once by a script that registers many pairs.
 
 Prints a markdown table and writes ``<out>/bench.json`` and ``<out>/bench.md``.
 """
