@@ -92,7 +92,9 @@ class RegistrationResult:
         fine run has its start's plain name);
         ``starts``: one entry per run (``start``; the objective ``energy`` its run ended or
         was last judged with, on every node of the grid (``energy_grid`` ``"fine"``) or of the
-        coarse pass's grid (``"coarse"``: a coarse run stopped early), after
+        coarse pass's grid (``"coarse"``: a coarse run stopped early), or, for a lone run (one
+        start, one pass), its final energy on its own quadrature (``"own"``; ``"fine"`` on the
+        full grid), after
         ``energy_after_modes`` modes (both ``None`` and ``energy`` NaN when it never was);
         its ``edge_strain`` when it ended or stopped; ``evaluations``; and
         ``stopped_after_modes`` / ``stop_reason``, ``merged``, ``outstretched`` or
@@ -386,7 +388,8 @@ class Registration:
             self._objectives[key] = build()
         return self._objectives[key]
 
-    def _run_starts(self, starts, progress, energy=None, objective=None) -> list["_StartRun"]:
+    def _run_starts(self, starts, progress, energy=None, objective=None,
+                    judge: bool = True) -> list["_StartRun"]:
         """Algorithm 1 from every start, advanced in lockstep one stage (mode) at a time.
 
         After each stage from ``start_check_modes`` on, a run stops early when another
@@ -404,7 +407,9 @@ class Registration:
         (default :meth:`energy`); ``objective``: what the runs are compared by while they
         run (default :meth:`_objective`, Eq. 3 on the full grid; the coarse pass gives
         :meth:`_coarse_objective`, and the report names the grid accordingly). A run that
-        ends is judged by :meth:`_objective` whatever ``objective`` is.
+        ends is judged by :meth:`_objective` whatever ``objective`` is; ``judge=False`` (a
+        lone run that nothing is chosen against) keeps its own final energy instead, on its
+        quadrature, and saves that evaluation.
         """
         o = self.options
         live = []
@@ -431,18 +436,21 @@ class Registration:
                 if len(going) > 1 and o.start_choice_modes is not None and stage >= o.start_choice_modes:
                     self._choose_now(going)
                 for r in [r for r in live if r.run.done or r.stopped is not None]:
-                    self._finish(r)
+                    self._finish(r, judge)
                     live.remove(r)
         return runs
 
-    def _finish(self, r: "_StartRun") -> None:
-        """Keep a run's result, SDF time, edge strain and (when it ran to the end) objective;
-        let its evaluator go."""
+    def _finish(self, r: "_StartRun", judge: bool = True) -> None:
+        """Keep a run's result, SDF time, edge strain and (when it ran to the end) objective
+        (``judge=False``: its final energy on its own quadrature); let its evaluator go."""
         self._state_of(r)  # the strain at the run's last state
         r.result = r.run.result()
         r.sdf_seconds = r.energy_term.seconds
         r.points_queried = _points_queried(r.energy_term)
-        if r.stopped is None:  # a stopped run keeps the objective it was judged by (or NaN)
+        if r.stopped is None and not judge:
+            r.energy, r.judged = float(r.result.final.energy), r.run.stage
+            r.energy_grid = "fine" if self.options.quadrature == "full" and self.options.coarse_modes == 0 else "own"
+        elif r.stopped is None:  # a stopped run keeps the objective it was judged by (or NaN)
             r.energy = self._comparable_energy(r.result)
             r.judged, r.energy_grid = r.run.stage, "fine"
         r.run = r.energy_term = r.vertices = r.objective = None
@@ -558,7 +566,8 @@ class Registration:
             runs += self._run_starts([starts[runs.index(kept)]], progress)  # runs keep the starts' order
             chosen = _select_start([kept, runs[-1]], factor)
         else:
-            runs = self._run_starts(starts, progress)
+            # a lone run is not compared with anything: no objective on the full grid
+            runs = self._run_starts(starts, progress, judge=len(starts) > 1)
             chosen = _select_start([r for r in runs if r.stopped is None], factor)
         out, first = chosen.result, runs[0].result
         timings["optimize"] = time.perf_counter() - t

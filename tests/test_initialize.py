@@ -531,11 +531,14 @@ def test_coarse_starts_run_every_start_coarse_then_the_kept_one_on_the_grid():
     # from the rest pose alone: the fine run is the one-pass registration
     none = opts.replace(initialization="none")
     two = mm.register((X, F), (Y, F), none)
-    one = mm.register((X, F), (Y, F), none.replace(coarse_starts=False))
+    lone = mm.Registration((X, F), (Y, F), none.replace(coarse_starts=False))
+    one = lone.run()
     assert [s["start"] for s in two.metrics["starts"]] == ["rest (coarse)", "rest"]
     fine, (alone,) = two.metrics["starts"][1], one.metrics["starts"]
     assert fine["evaluations"] == alone["evaluations"]
-    assert fine["energy"] == pytest.approx(alone["energy"], rel=1e-12)
+    # the lone run reports its own final energy (it is compared with nothing); the fine
+    # run's is the objective on the full grid, at the same vertices
+    assert fine["energy"] == pytest.approx(lone._objective(lone.normalization.apply(one.vertices)), rel=1e-9)
     if two.metrics["start"] == "rest":
         np.testing.assert_array_equal(two.vertices, one.vertices)
     # a grid too coarse to halve: one pass
@@ -585,3 +588,23 @@ def test_points_queried_counts_every_query_of_the_source(monkeypatch):
     assert r.metrics["comparison_evaluations"] == 0
     assert r.metrics["points_queried"] == sum(counted) == r.evaluations * paper.Q.shape[0]
     assert r.metrics["full_grid_equivalents"] == r.evaluations
+
+
+def test_a_lone_run_is_not_judged_on_the_full_grid():
+    """One start in one pass: nothing is chosen against it, so no objective is evaluated on
+    the full grid; the report keeps the run's own final energy. The run itself is the one a
+    judged run makes."""
+    X, F = asymmetric_blob()
+    Y = bend(X, 0.5, axis=2, towards=0)
+    opts = mm.RegistrationOptions(grid=24, modes=3, initialization="none", coarse_starts=False)
+    reg = mm.Registration((X, F), (Y, F), opts)
+    r = reg.run()
+    assert r.metrics["comparison_evaluations"] == 0
+    (start,) = r.metrics["starts"]
+    assert start["energy_grid"] == "own" and start["energy_after_modes"] == 3
+    assert start["energy"] == r.metrics["final_energy"]
+
+    (judged,) = reg._run_starts([("rest", None, opts)], None)
+    np.testing.assert_array_equal(reg.normalization.undo(judged.result.vertices), r.vertices)
+    assert judged.energy_grid == "fine"
+    assert judged.energy == pytest.approx(reg._objective(judged.result.vertices), rel=1e-12)
