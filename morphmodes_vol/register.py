@@ -448,8 +448,9 @@ class Registration:
         r.sdf_seconds = r.energy_term.seconds
         r.points_queried = _points_queried(r.energy_term)
         if r.stopped is None and not judge:
+            o = self.options
             r.energy, r.judged = float(r.result.final.energy), r.run.stage
-            r.energy_grid = "fine" if self.options.quadrature == "full" and self.options.coarse_modes == 0 else "own"
+            r.energy_grid = "fine" if o.quadrature == "full" and o.coarse_modes == 0 else "own"
         elif r.stopped is None:  # a stopped run keeps the objective it was judged by (or NaN)
             r.energy = self._comparable_energy(r.result)
             r.judged, r.energy_grid = r.run.stage, "fine"
