@@ -588,6 +588,9 @@ def test_points_queried_counts_every_query_of_the_source(monkeypatch):
     assert r.metrics["comparison_evaluations"] == 0
     assert r.metrics["points_queried"] == sum(counted) == r.evaluations * paper.Q.shape[0]
     assert r.metrics["full_grid_equivalents"] == r.evaluations
+    # its lone run's final energy is already on the full grid
+    assert r.metrics["starts"][0]["energy_grid"] == "fine"
+    assert r.metrics["starts"][0]["energy"] == r.metrics["final_energy"]
 
 
 def test_a_lone_run_is_not_judged_on_the_full_grid():
