@@ -232,6 +232,9 @@ class AddedTerm:
     evaluations = property(lambda self: self.inner.evaluations)
     partial_evaluations = property(lambda self: getattr(self.inner, "partial_evaluations", 0))
     seconds = property(lambda self: self.inner.seconds)
+    # the cost counters of the quadratures (morphmodes_vol.quadrature)
+    points_queried = property(lambda self: self.inner.points_queried)
+    centres_queried = property(lambda self: getattr(self.inner, "centres_queried", 0))
 
     def refresh(self, X: np.ndarray, force: bool = False) -> bool:
         return self.inner.refresh(X, force)

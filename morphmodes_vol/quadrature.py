@@ -280,6 +280,9 @@ class CoarseToFine:
     partial_evaluations = property(lambda self: sum(getattr(e, "partial_evaluations", 0)
                                                     for e in (self.coarse, self.fine)))
     seconds = property(lambda self: self.coarse.seconds + self.fine.seconds)
+    points_queried = property(lambda self: self.coarse.points_queried + self.fine.points_queried)
+    centres_queried = property(lambda self: sum(getattr(e, "centres_queried", 0)
+                                                for e in (self.coarse, self.fine)))
 
     def start_stage(self, m: int) -> None:
         """Stage ``m`` (active modes) begins: switch to the fine quadrature after ``modes``."""

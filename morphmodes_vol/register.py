@@ -361,11 +361,14 @@ class Registration:
         T0 = np.asarray(matrix, dtype=np.float64) - np.hstack([np.eye(3), np.zeros((3, 1))])
         return (T0 / self.weights[0, 0])[None]
 
+    def _runs_on_full_grid(self) -> bool:
+        """Whether a run's own final energy is already the objective on the full grid."""
+        return self.options.quadrature == "full" and self.options.coarse_modes == 0
+
     def _comparable_energy(self, out) -> float:
         """The objective of a run's result (Eq. 3 plus the isometry prior and landmarks
         when on) with Eq. (3) on the full grid: a band quadrature differs per run."""
-        o = self.options
-        if o.quadrature == "full" and o.coarse_modes == 0:
+        if self._runs_on_full_grid():
             return float(out.final.energy)
         return self._objective(out.vertices)
 
@@ -448,9 +451,8 @@ class Registration:
         r.sdf_seconds = r.energy_term.seconds
         r.points_queried = _points_queried(r.energy_term)
         if r.stopped is None and not judge:
-            o = self.options
             r.energy, r.judged = float(r.result.final.energy), r.run.stage
-            r.energy_grid = "fine" if o.quadrature == "full" and o.coarse_modes == 0 else "own"
+            r.energy_grid = "fine" if self._runs_on_full_grid() else "own"
         elif r.stopped is None:  # a stopped run keeps the objective it was judged by (or NaN)
             r.energy = self._comparable_energy(r.result)
             r.judged, r.energy_grid = r.run.stage, "fine"
@@ -704,10 +706,6 @@ def _points_queried(energy) -> int:
     """Points an evaluator (:meth:`Registration.energy` or :meth:`coarse_energy`) sent to the
     source mesh's closest-point queries: at its evaluations and, on the band quadrature, at
     the block centres its refreshes asked."""
-    while hasattr(energy, "inner"):  # added terms (isometry prior, landmarks)
-        energy = energy.inner
-    if isinstance(energy, CoarseToFine):
-        return _points_queried(energy.coarse) + _points_queried(energy.fine)
     return int(energy.points_queried + getattr(energy, "centres_queried", 0))
 
 
