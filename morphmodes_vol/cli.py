@@ -94,6 +94,8 @@ def _options_from_args(args) -> RegistrationOptions:
         changes["isometry_weight"] = args.isometry_weight
     if getattr(args, "coarse_starts", None) is not None:
         changes["coarse_starts"] = args.coarse_starts
+    if getattr(args, "two_way", False):
+        changes["two_way"] = True
     return RegistrationOptions().replace(**changes)
 
 
@@ -125,6 +127,11 @@ def _add_common(p: argparse.ArgumentParser, default_grid: int, default_modes: in
                    help="run the starts on every other grid node first, then the kept one on the "
                         "grid, and keep the less strained result (default on, off with "
                         "--optimizer paper; docs/method.md)")
+    p.add_argument("--two-way", action="store_true",
+                   help="also register the target onto the source, start a run from the "
+                        "correspondences it implies and keep the lower objective: about twice "
+                        "the time, more accurate on hard poses (needs a target mesh; "
+                        "docs/method.md)")
     p.add_argument("--isometry-weight", type=float, default=None, metavar="W",
                    help=f"weight of the isometry prior, a penalty on uneven edge stretch added to "
                         f"the SDF energy (0: the SDF energy alone, as the paper; default "
@@ -169,6 +176,11 @@ def _summary(result, paths) -> str:
             f"{s['start']} " + (f"stopped after {s['stopped_after_modes']} modes ({s['stop_reason']})"
                                 if s["stopped_after_modes"] is not None else "ran to the end")
             for s in m["starts"]) + f"; kept: {m['start']}")
+    if "two_way" in m:
+        t = m["two_way"]
+        lines.append("two-way: objective " + ", ".join(f"{k} {e:.4g}" for k, e in t["objectives"].items())
+                     + f" (reverse registration: {t['reverse_registration_evaluations']} evaluations, "
+                     f"{t['reverse_registration_seconds']:.1f}s); kept: {t['kept']}")
     lines.append(f"SDF residual RMS: {m['initial_sdf_rms']:.4g} -> {m['final_sdf_rms']:.4g} "
                  "(fraction of the scene diagonal)")
     if "ground_truth_error" in m:

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
+import scipy.sparse as sp
 
 from .eigenbasis import LBSBasis, mesh_skinning_weights, to_paper_z
 from .energy import SDFEnergy
@@ -30,6 +31,7 @@ from .repair import sdf_faces
 from .optimize import AdaptiveRun, OptimizationHistory, ProgressEvent, single_threaded_blas
 from .sdf import Grid, TargetSDF, build_target_sdf, closest_points, is_target_sdf_path, load_target_sdf
 from .stages import SourceEigenbasis, TargetField
+from .two_way import reverse_correspondences, source_surface_rows
 
 __all__ = ["register", "Registration", "RegistrationResult", "ground_truth_error"]
 
@@ -81,7 +83,9 @@ class RegistrationResult:
     timings : dict of str to float
         Seconds per stage: ``preprocess``, ``target_sdf``, ``eigenbasis``, ``initialize``,
         ``optimize``, ``correspondence``; ``sdf_queries``: the part of ``optimize`` spent in
-        source-SDF evaluations (the runs' and the comparisons').
+        source-SDF evaluations (the runs' and the comparisons'); with ``two_way``,
+        ``two_way``: the part of ``optimize`` spent on the reverse registration and the run
+        from its correspondences (whose SDF time is in ``sdf_queries`` too).
     metrics : dict of str to float
         Energies, RMS SDF residuals, surface distance and degeneracy
         (:func:`morphmodes_vol.metrics.shape_metrics`), ground-truth errors when a ground
@@ -89,7 +93,8 @@ class RegistrationResult:
         ``landmark_rms`` in target units, ``landmark_rms_fraction`` of its diagonal).
         ``start``: the start whose run was kept (``rest``, ``aligned`` or ``icp``; with
         ``coarse_starts``, the coarse pass's runs are ``rest (coarse)`` and so on, and the
-        fine run has its start's plain name);
+        fine run has its start's plain name; with ``two_way``, ``reverse`` or ``reverse, both
+        sides`` when a run from the reverse registration's correspondences was kept);
         ``starts``: one entry per run (``start``; the objective ``energy`` its run ended or
         was last judged with, on every node of the grid (``energy_grid`` ``"fine"``) or of the
         coarse pass's grid (``"coarse"``: a coarse run stopped early), or, for a lone run (one
@@ -107,7 +112,11 @@ class RegistrationResult:
         node of the fine or the coarse grid, not among the former), ``points_queried``
         (every point sent to the source mesh's closest-point queries, the alignment's source
         field included) and ``full_grid_equivalents`` (that over the grid's nodes: the cost in
-        evaluations of Eq. 3 on the full grid, each of which ``--optimizer paper`` makes).
+        evaluations of Eq. 3 on the full grid, each of which ``--optimizer paper`` makes); with
+        ``two_way`` these include the reverse registration's, and ``two_way`` reports the
+        choice (``kept``: ``"forward"``, ``"reverse"`` or ``"reverse, both sides"``;
+        ``objectives``: each one's objective on the full grid; the reverse registration's
+        kept ``reverse_registration_start``, its evaluations and seconds).
     correspondence_faces : (n,) int64 or None
         For every registered vertex, the closest target face (``None`` when the target was
         given as an SDF grid: it has no faces).
@@ -206,6 +215,13 @@ class Registration:
                 f"modes={self.options.modes} exceeds the source's "
                 f"{self.source_vertices.shape[0]} vertices"
             )
+        if self.options.two_way and grid_target is not None:
+            raise OptionError("two_way registers the target onto the source and needs the target "
+                              "as a mesh; the target was given as an SDF")
+        if self.options.two_way and self.options.modes > self.target_vertices.shape[0]:
+            raise OptionError(f"two_way: modes={self.options.modes} exceeds the target's "
+                              f"{self.target_vertices.shape[0]} vertices (the reverse "
+                              "registration's source)")
         self.normalization = joint_normalization(self.source_vertices, target_box)
         self.landmarks = None if landmarks is None else as_landmarks(landmarks, len(self.source_vertices))
         self.X0 = self.normalization.apply(self.source_vertices)
@@ -569,14 +585,24 @@ class Registration:
             runs += self._run_starts([starts[runs.index(kept)]], progress)  # runs keep the starts' order
             chosen = _select_start([kept, runs[-1]], factor)
         else:
-            # a lone run is not compared with anything: no objective on the full grid
-            runs = self._run_starts(starts, progress, judge=len(starts) > 1)
+            # a lone run is not compared with anything (unless two_way compares it with the
+            # run from the reverse registration): no objective on the full grid
+            runs = self._run_starts(starts, progress, judge=len(starts) > 1 or self.options.two_way)
             chosen = _select_start([r for r in runs if r.stopped is None], factor)
+        reverse, two_way = None, {}
+        if self.options.two_way:
+            t_two_way = time.perf_counter()
+            reverse, reverse_runs, two_way = self._two_way(chosen, progress)
+            runs += reverse_runs
+            chosen = next((r for r in reverse_runs if r.label == two_way["kept"]), chosen)
+            timings["two_way"] = time.perf_counter() - t_two_way
         out, first = chosen.result, runs[0].result
         timings["optimize"] = time.perf_counter() - t
         # the comparisons' objectives (full or coarse grid) are source-SDF queries too
         compared = np.subtract(_comparison_counters(self._objectives.values()), compared_before)
         timings["sdf_queries"] = sum(r.sdf_seconds for r in runs) + float(compared[2])
+        if reverse is not None:
+            timings["sdf_queries"] += reverse.timings["sdf_queries"]
         if len(runs) > 1:
             log.info("kept the start from the %s (edge strain %s, energy %s)", chosen.label,
                      ", ".join(f"{r.label} {r.strain:.3f}" for r in runs),
@@ -615,6 +641,8 @@ class Registration:
                 metrics["initial_sdf_rms"], metrics["final_sdf_rms"],
             )
         metrics.update(init_summary)
+        if two_way:
+            metrics["two_way"] = two_way
         metrics["edge_strain"] = chosen.strain
         metrics["start"] = chosen.label
         metrics["starts"] = [{"start": r.label, "energy": r.energy, "energy_grid": r.energy_grid,
@@ -623,20 +651,26 @@ class Registration:
                               "evaluations": r.result.history.evaluations,
                               "stopped_after_modes": r.stopped, "stop_reason": r.reason}
                              for r in runs]
-        metrics["evaluations_all_starts"] = sum(r.result.history.evaluations for r in runs)
+        # with two_way, the counts below include the reverse registration's (it queries the
+        # target mesh, on a grid of the same box)
+        rm = {} if reverse is None else reverse.metrics
+        metrics["evaluations_all_starts"] = (sum(r.result.history.evaluations for r in runs)
+                                             + rm.get("evaluations_all_starts", 0))
         # of which on the coarse pass's grid (coarse_starts), each a few times cheaper
-        metrics["coarse_evaluations_all_starts"] = sum(r.result.history.evaluations for r in runs
-                                                       if r.label.endswith(COARSE_SUFFIX))
+        metrics["coarse_evaluations_all_starts"] = (sum(r.result.history.evaluations for r in runs
+                                                        if r.label.endswith(COARSE_SUFFIX))
+                                                    + rm.get("coarse_evaluations_all_starts", 0))
         # of which after a band refresh, querying only the points new to the band
-        metrics["partial_evaluations_all_starts"] = sum(r.result.history.partial_evaluations for r in runs)
+        metrics["partial_evaluations_all_starts"] = (sum(r.result.history.partial_evaluations for r in runs)
+                                                     + rm.get("partial_evaluations_all_starts", 0))
         # the objectives that compared runs (every node of the fine or the coarse grid),
         # not counted above
-        metrics["comparison_evaluations"] = int(compared[0])
+        metrics["comparison_evaluations"] = int(compared[0]) + rm.get("comparison_evaluations", 0)
         # every point sent to the source mesh's closest-point queries: the runs' evaluations
         # and band refreshes, the comparisons, the initial alignment's source field; over the
         # grid's nodes, the cost in evaluations of Eq. (3) on the full grid (the paper's)
         queried = (sum(r.points_queried for r in runs) + int(compared[1])
-                   + int(init_summary.get("init_field_nodes", 0)))
+                   + int(init_summary.get("init_field_nodes", 0)) + rm.get("points_queried", 0))
         metrics["points_queried"] = queried
         metrics["full_grid_equivalents"] = queried / self.Q.shape[0]
         if ground_truth is not None:
@@ -669,6 +703,47 @@ class Registration:
             target_vertices=self.target_vertices,
             target_faces=self.target_faces,
         )
+
+    def _two_way(self, forward: "_StartRun", progress) -> tuple["RegistrationResult", list["_StartRun"], dict]:
+        """``two_way`` (docs/method.md, "Two-way registration"): register the target onto the
+        source, fit the subspace to the correspondences it implies, in two ways: the source
+        vertices' counterparts on the target
+        (:func:`~morphmodes_vol.two_way.reverse_correspondences`), and those stacked with the
+        target vertices' counterparts on the source's surface
+        (:func:`~morphmodes_vol.two_way.source_surface_rows`); minimize the objective from
+        each fit on all modes (one stage of at most ``two_way_iterations`` Levenberg-Marquardt
+        steps); and compare with the ``forward`` run's result by the objective on the full
+        grid. Returns the reverse registration, the two runs and the report
+        (``metrics["two_way"]``)."""
+        o = self.options
+        log.info("two-way: registering the target onto the source")
+        reverse = Registration((self.target_vertices, self.target_faces),
+                               (self.source_vertices, self.source_faces), o.replace(two_way=False))
+        shown = None if progress is None else (  # "[reverse: rest (coarse)] ..." and so on
+            lambda e: progress(replace(e, start=f"reverse: {e.start}" if e.start else "reverse")))
+        back = reverse.run(progress=shown)
+        # the reverse result lies on the source's surface, in the source's original frame
+        Yd = self.normalization.apply(back.vertices)
+        P = reverse_correspondences(self.X0, Yd, self.target_faces, self.Y)
+        S = source_surface_rows(self.X0, self.source_sdf_faces, Yd)
+        both = sp.vstack([sp.identity(self.X0.shape[0], format="csr"), S], format="csr")
+        fits = {"reverse": self.basis.fit(P, o.modes),
+                "reverse, both sides": self.basis.fit(np.vstack([P, self.Y]), o.modes, rows=both)}
+        options = o.replace(initial_modes=o.modes, lm_final_iterations=o.two_way_iterations)
+        runs = self._run_starts([(label, T, options) for label, T in fits.items()], progress)
+        forward_energy = (forward.energy if forward.energy_grid == "fine"
+                          else self._objective(forward.result.vertices))
+        objectives = {"forward": forward_energy, **{r.label: r.energy for r in runs}}
+        finite = {k: e for k, e in objectives.items() if np.isfinite(e)}
+        kept = min(finite, key=finite.get) if finite else "forward"
+        log.info("two-way: objective %s: kept the %s result",
+                 ", ".join(f"{k} {e:.4g}" for k, e in objectives.items()), kept)
+        report = {"kept": kept, "objectives": objectives,
+                  "reverse_registration_start": back.metrics["start"],
+                  "reverse_registration_evaluations": back.evaluations,
+                  "reverse_registration_seconds": float(sum(v for k, v in back.timings.items()
+                                                            if k != "sdf_queries"))}
+        return back, runs, report
 
     def _landmark_metrics(self, vertices: np.ndarray, target_diagonal: float) -> dict:
         """RMS landmark distance of the rest pose and of the registered ``vertices (n, 3)``,

@@ -93,6 +93,47 @@ class LBSBasis:
             self._gram = np.einsum("nj,nk,nl->jkl", W2, self.Xh, self.Xh, optimize=True)
         return self._gram[:m]
 
+    def fit(self, X: np.ndarray, m: int, rows: sp.spmatrix | None = None) -> np.ndarray:
+        """The blocks ``T (m, 3, 4)`` whose deformation is closest to ``X`` in the least
+        squares sense over the first ``m`` modes: ``argmin_T ||S deform(T) - X||^2``, ``S =
+        rows`` (default the identity: ``X (n, 3)`` are the vertices' positions). Eq. (6) is
+        linear in ``T``, so this is one least-squares solve with ``4m`` unknowns per
+        coordinate. ``fit(deform(T), m)`` reproduces ``deform(T)`` (and ``T`` itself when the
+        ``n x 4m`` matrix ``W[:, :m] * [X0 1]`` has full column rank).
+
+        Parameters
+        ----------
+        X : (k, 3) float
+            Where the points ``S x`` should be.
+        m : int
+            Modes to fit, ``1 <= m <= m_max``.
+        rows : (k, n) sparse matrix, optional
+            Each point a combination of vertices (a row of barycentric coordinates places a
+            point on a face).
+
+        Examples
+        --------
+        >>> X0 = np.random.default_rng(0).random((10, 3)); W = np.ones((10, 1))
+        >>> A = np.array([[[0.1, 0, 0, 1], [0, 0, 0, 2], [0, 0, -0.2, 3]]])
+        >>> bool(np.allclose(LBSBasis(X0, W).fit(X0 @ (np.eye(3) + A[0, :, :3]).T + A[0, :, 3], 1), A))
+        True
+        """
+        X = np.asarray(X, dtype=np.float64)
+        n = self.X0.shape[0]
+        k = n if rows is None else rows.shape[0]
+        if rows is not None and rows.shape[1] != n:
+            raise ValueError(f"rows must have {n} columns (one per vertex), got {rows.shape}")
+        if X.shape != (k, 3):
+            raise ValueError(f"X must have shape ({k}, 3), got {X.shape}")
+        if not 1 <= m <= self.max_modes:
+            raise ValueError(f"m must be in [1, {self.max_modes}], got {m}")
+        C = (self.W[:, :m, None] * self.Xh[:, None, :]).reshape(n, 4 * m)  # x - x0 = C T'
+        rest = self.X0
+        if rows is not None:
+            C, rest = rows @ C, rows @ self.X0
+        sol, *_ = np.linalg.lstsq(C, X - rest, rcond=None)  # (4m, 3): mode, homogeneous
+        return np.ascontiguousarray(sol.reshape(m, 4, 3).transpose(0, 2, 1))
+
     def matrix(self, m: int) -> sp.csr_matrix:
         """The explicit ``3n x 12m`` matrix ``B`` of Eq. (5) (tests and small meshes only)."""
         n = self.X0.shape[0]
