@@ -14,6 +14,8 @@ onto ``--sweep-targets`` (default lion-01 and lion-05). Ground-truth error:
 
 Methods:
 - ``ours``: :class:`morphmodes_vol.RegistrationOptions` defaults, with ``--set`` overrides;
+- ``two-way``: the same with ``two_way=True`` (the reverse registration's correspondences as
+  one more start; about twice the time);
 - ``paper``: the paper-faithful settings, :meth:`RegistrationOptions.paper_faithful`
   (Algorithm 1's gradient descent from the rest pose, no initialization stage, 20 modes),
   at ``--paper-grid`` (default 64, the default grid; the paper's optimizer takes 3-6 min per
@@ -27,7 +29,7 @@ and resumed, and columns can be filled by separate invocations. ``--redo METHOD`
 method's rows first.
 
 Writes ``<out>/accuracy_runs.csv``, ``accuracy_table.md`` (error and time of every method per
-pair, the means and the ratio RICP+NRICP / ours) and ``accuracy.png``.
+pair, the means and the ratios RICP+NRICP / ours and / two-way) and ``accuracy.png``.
 """
 
 from __future__ import annotations
@@ -48,7 +50,22 @@ import morphmodes_vol as mm  # noqa: E402
 from morphmodes_vol.baselines import nricp, prepare_pair  # noqa: E402
 from morphmodes_vol.mesh import load_mesh  # noqa: E402
 
-METHODS = ("ours", "paper", "nricp", "ricp+nricp")
+METHODS = ("ours", "two-way", "paper", "nricp", "ricp+nricp")
+OURS = ("ours", "two-way")  # our settings compared with RICP+NRICP pair by pair
+
+
+def same_config(stored: str | None, current: str) -> bool:
+    """Whether a row's stored configuration is the current one: equal, or equal but for
+    options added to :class:`RegistrationOptions` since, at their defaults (which keep the
+    earlier behaviour), so rows survive new options."""
+    if stored == current:
+        return True
+    if not (stored or "").startswith("{") or not current.startswith("{"):
+        return False
+    old, new = json.loads(stored), json.loads(current)
+    defaults = mm.RegistrationOptions().to_dict()
+    return (set(old) <= set(new) and all(old[k] == new[k] for k in old)
+            and all(new[k] == defaults[k] for k in set(new) - set(old)))
 
 
 def pairs(angles: list[float], sweep_targets: list[str]) -> list[dict]:
@@ -69,7 +86,7 @@ def pairs(angles: list[float], sweep_targets: list[str]) -> list[dict]:
 
 def run_method(method: str, source, target, truth, options: "mm.RegistrationOptions") -> dict:
     t = time.perf_counter()
-    if method in ("ours", "paper"):
+    if method in ("ours", "two-way", "paper"):
         r = mm.register(source, target, options, ground_truth=truth)
         extra = {"evaluations": r.evaluations, "modes": r.modes, "status": r.status,
                  "start": r.metrics.get("start", "rest"), "edge_strain": r.metrics.get("edge_strain", "")}
@@ -86,9 +103,9 @@ def table(rows: list[dict], order: list[str]) -> str:
     methods = [m for m in METHODS if any(r["method"] == m for r in rows)]
     by = {(r["pair"], r["method"]): r for r in rows}
     head = "| pair | identity | " + " | ".join(f"{m} error | {m} s" for m in methods)
-    ratio = "ours" in methods and "ricp+nricp" in methods
-    md = [head + (" | RICP+NRICP / ours |" if ratio else " |"),
-          "|---|---|" + "---|---|" * len(methods) + ("---|" if ratio else "")]
+    ours = [m for m in OURS if m in methods and "ricp+nricp" in methods]
+    md = [head + "".join(f" | RICP+NRICP / {m}" for m in ours) + " |",
+          "|---|---|" + "---|---|" * len(methods) + "---|" * len(ours)]
     for p in order:
         cells = [by.get((p, m)) for m in methods]
         if not any(cells):
@@ -96,10 +113,10 @@ def table(rows: list[dict], order: list[str]) -> str:
         ident = next(c for c in cells if c)["identity_error"]
         line = f"| {p} | {ident:.4f} | " + " | ".join(
             f"{c['error']:.4f} | {c['seconds']:.0f}" if c else " | " for c in cells)
-        if ratio:
-            o, b = by.get((p, "ours")), by.get((p, "ricp+nricp"))
-            line += f" | {b['error'] / o['error']:.2f} |" if o and b else " | |"
-        md.append(line)
+        for m in ours:
+            o, b = by.get((p, m)), by.get((p, "ricp+nricp"))
+            line += f" | {b['error'] / o['error']:.2f}" if o and b else " | "
+        md.append(line + " |")
     # summary over the pairs every method has
     common = [p for p in order if all((p, m) in by for m in methods)]
     if common:
@@ -107,14 +124,13 @@ def table(rows: list[dict], order: list[str]) -> str:
         secs = {m: np.mean([by[(p, m)]["seconds"] for p in common]) for m in methods}
         line = f"| **mean over {len(common)} pairs** | | " + " | ".join(
             f"**{mean[m]:.4f}** | {secs[m]:.0f}" for m in methods)
-        if ratio:
-            line += f" | **{mean['ricp+nricp'] / mean['ours']:.2f}** |"
-        md.append(line)
-        if ratio:
-            worse = [p for p in common if by[(p, "ours")]["error"] > by[(p, "ricp+nricp")]["error"]]
+        line += "".join(f" | **{mean['ricp+nricp'] / mean[m]:.2f}**" for m in ours)
+        md.append(line + " |")
+        for m in ours:
+            worse = [p for p in common if by[(p, m)]["error"] > by[(p, "ricp+nricp")]["error"]]
             md.append("")
-            md.append(f"Ours worse than RICP+NRICP on {len(worse)} of {len(common)} pairs"
-                      + (f": {', '.join(worse)}." if worse else "."))
+            md.append(f"{'Ours' if m == 'ours' else 'Ours, two-way,'} worse than RICP+NRICP on "
+                      f"{len(worse)} of {len(common)} pairs" + (f": {', '.join(worse)}." if worse else "."))
     return "\n".join(md) + "\n"
 
 
@@ -131,7 +147,7 @@ def plot(rows: list[dict], order: list[str], path: Path) -> None:
     x = np.arange(len(present))
     fig, ax = plt.subplots(figsize=(max(8, 0.38 * len(present)), 3.8))
     ax.plot(x, [ident[p] for p in present], "k:", label="identity", lw=1)
-    for m, style in zip(METHODS, ("s-", "d--", "^-.", "o--")):
+    for m, style in zip(METHODS, ("s-", "v-", "d--", "^-.", "o--")):
         if m in methods:
             ax.plot(x, [by.get((p, m), np.nan) for p in present], style, label=m, ms=4)
     ax.set_xticks(x)
@@ -169,6 +185,7 @@ def main() -> int:
 
     configs = {
         "ours": mm.RegistrationOptions().replace(**parse_overrides(args.set)),
+        "two-way": mm.RegistrationOptions(two_way=True).replace(**parse_overrides(args.set)),
         "paper": mm.RegistrationOptions.paper_faithful().replace(grid=args.paper_grid),
         "nricp": mm.RegistrationOptions(),  # grid for the SDF residual metric only
         "ricp+nricp": mm.RegistrationOptions(),
@@ -177,8 +194,9 @@ def main() -> int:
     for m in ("nricp", "ricp+nricp"):
         config_key[m] = "trimesh nricp_amberg defaults"
     if not args.plot_only:
-        done = {(r["pair"], r["method"]) for r in rows if r.get("config") == config_key[r["method"]]}
-        rows = [r for r in rows if (r["pair"], r["method"]) in done]  # other configurations are redone
+        done = {(r["pair"], r["method"]) for r in rows if same_config(r.get("config"), config_key[r["method"]])}
+        # the methods run now redo their rows of other configurations; other methods' rows stay
+        rows = [r for r in rows if r["method"] not in args.methods or (r["pair"], r["method"]) in done]
         cache: dict[str, tuple] = {}
         for p in plan:
             if args.pairs and p["pair"] not in args.pairs:
