@@ -128,8 +128,8 @@ def _add_common(p: argparse.ArgumentParser, default_grid: int, default_modes: in
                         "grid, and keep the less strained result (default on, off with "
                         "--optimizer paper; docs/method.md)")
     p.add_argument("--two-way", action="store_true",
-                   help="also register the target onto the source, start a run from the "
-                        "correspondences it implies and keep the lower objective: about twice "
+                   help="also register the target onto the source, start two runs from the "
+                        "correspondences it implies and keep the lowest objective: about twice "
                         "the time, more accurate on hard poses (needs a target mesh; "
                         "docs/method.md)")
     p.add_argument("--isometry-weight", type=float, default=None, metavar="W",

@@ -159,3 +159,20 @@ def test_two_way_recovers_a_pose_the_forward_runs_miss(data_dir):
     assert r.metrics["two_way"]["kept"] != "forward"
     assert objectives["forward"] > 1.5 * objectives[r.metrics["two_way"]["kept"]]
     assert r.metrics["ground_truth_error"] < 0.015
+
+
+def test_two_way_with_landmarks_judges_by_the_objective_with_them():
+    """The reverse registration runs without the landmarks (they pin source vertices); the
+    runs from its correspondences and the choice use the objective with them."""
+    source, target = _bent_pair()
+    idx = np.array([0, len(source[0]) - 1])
+    landmarks = (idx, target[0][idx])
+    options = mm.RegistrationOptions(grid=24, modes=4, two_way=True)
+    reg = mm.Registration(source, target, options, landmarks=landmarks)
+    r = reg.run()
+    t = r.metrics["two_way"]
+    assert reg._objective(reg.normalization.apply(r.vertices)) == pytest.approx(
+        t["objectives"][t["kept"]], rel=1e-9)
+    plain = mm.Registration(source, target, options)
+    assert plain._objective(reg.normalization.apply(r.vertices)) < t["objectives"][t["kept"]]
+    assert r.metrics["landmark_rms_fraction"] < 0.02
