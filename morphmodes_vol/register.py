@@ -717,8 +717,10 @@ class Registration:
         (``metrics["two_way"]``)."""
         o = self.options
         log.info("two-way: registering the target onto the source")
+        grid = o.grid if o.two_way_grid is None else o.two_way_grid
         reverse = Registration((self.target_vertices, self.target_faces),
-                               (self.source_vertices, self.source_faces), o.replace(two_way=False))
+                               (self.source_vertices, self.source_faces),
+                               o.replace(two_way=False, grid=grid))
         shown = None if progress is None else (  # "[reverse: rest (coarse)] ..." and so on
             lambda e: progress(replace(e, start=f"reverse: {e.start}" if e.start else "reverse")))
         back = reverse.run(progress=shown)

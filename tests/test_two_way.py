@@ -130,6 +130,8 @@ def test_two_way_options_and_targets_are_checked(tmp_path):
         mm.RegistrationOptions(two_way=1)
     with pytest.raises(mm.OptionError, match="two_way_iterations"):
         mm.RegistrationOptions(two_way_iterations=0)
+    with pytest.raises(mm.OptionError, match="two_way_grid"):
+        mm.RegistrationOptions(two_way_grid=2)
     from morphmodes_vol.sdf import DenseTargetSDF, Grid
 
     (V, F), (Y, _) = _bent_pair()
@@ -176,3 +178,22 @@ def test_two_way_with_landmarks_judges_by_the_objective_with_them():
     plain = mm.Registration(source, target, options)
     assert plain._objective(reg.normalization.apply(r.vertices)) < t["objectives"][t["kept"]]
     assert r.metrics["landmark_rms_fraction"] < 0.02
+
+
+def test_two_way_grid_is_the_reverse_registrations_grid(monkeypatch):
+    """The reverse registration runs on ``two_way_grid`` nodes; the forward runs and the runs
+    from the correspondences stay on ``grid``."""
+    from morphmodes_vol.register import Registration
+
+    grids = []
+    original = Registration.__init__
+
+    def recording(self, source, target, options=None, **kw):
+        original(self, source, target, options, **kw)
+        grids.append(max(self.quadrature.shape))
+
+    monkeypatch.setattr(Registration, "__init__", recording)
+    source, target = _bent_pair()
+    r = mm.register(source, target, grid=24, modes=3, two_way=True, two_way_grid=16)
+    assert grids == [24, 16]
+    assert r.metrics["two_way"]["kept"] in r.metrics["two_way"]["objectives"]
