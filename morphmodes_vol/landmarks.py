@@ -36,7 +36,7 @@ import numpy as np
 
 from .energy import AddedTerm, EnergyEvaluation
 from .errors import LandmarkError
-from .optimize.gauss_newton import _assemble, _skinning_matrix
+from .optimize.gauss_newton import _assemble
 
 __all__ = ["Landmarks", "load_landmarks", "as_landmarks", "LandmarkEnergy", "LandmarkEvaluation",
            "landmark_rms"]
@@ -280,7 +280,7 @@ class LandmarkEnergy(AddedTerm):
         landmark rows of the skinning matrix; half the term's Hessian, as ``A`` is half
         the Gauss-Newton Hessian of Eq. 3); constant, ``X`` is not used."""
         if m not in self._normal:
-            CL = _skinning_matrix(basis, m)[self.indices]
+            CL = basis.skinning_matrix(m)[self.indices]
             block = self.coefficient * (CL.T @ CL)
             self._normal[m] = _assemble({(a, a): block for a in range(3)}, m)
         return self._normal[m]

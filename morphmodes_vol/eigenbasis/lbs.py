@@ -93,6 +93,13 @@ class LBSBasis:
             self._gram = np.einsum("nj,nk,nl->jkl", W2, self.Xh, self.Xh, optimize=True)
         return self._gram[:m]
 
+    def skinning_matrix(self, m: int) -> np.ndarray:
+        """``C (n, 4m)``, ``C[i, 4 j + b] = W[i, j] [x0_i 1]_b``: each coordinate of the
+        displacement is ``C`` times that coordinate's coefficients (Eq. 6), and ``B = C kron
+        I3`` (Eq. 5)."""
+        n = self.X0.shape[0]
+        return (self.W[:, :m, None] * self.Xh[:, None, :]).reshape(n, 4 * m)
+
     def fit(self, X: np.ndarray, m: int, rows: sp.spmatrix | None = None) -> np.ndarray:
         """The blocks ``T (m, 3, 4)`` whose deformation is closest to ``X`` in the least
         squares sense over the first ``m`` modes: ``argmin_T ||S deform(T) - X||^2``, ``S =
@@ -127,7 +134,7 @@ class LBSBasis:
             raise ValueError(f"X must have shape ({k}, 3), got {X.shape}")
         if not 1 <= m <= self.max_modes:
             raise ValueError(f"m must be in [1, {self.max_modes}], got {m}")
-        C = (self.W[:, :m, None] * self.Xh[:, None, :]).reshape(n, 4 * m)  # x - x0 = C T'
+        C = self.skinning_matrix(m)  # x - x0 = C T'
         rest = self.X0
         if rows is not None:
             C, rest = rows @ C, rows @ self.X0
@@ -136,6 +143,4 @@ class LBSBasis:
 
     def matrix(self, m: int) -> sp.csr_matrix:
         """The explicit ``3n x 12m`` matrix ``B`` of Eq. (5) (tests and small meshes only)."""
-        n = self.X0.shape[0]
-        A = (self.W[:, :m, None] * self.Xh[:, None, :]).reshape(n, 4 * m)
-        return sp.kron(sp.csr_matrix(A), sp.identity(3), format="csr")
+        return sp.kron(sp.csr_matrix(self.skinning_matrix(m)), sp.identity(3), format="csr")

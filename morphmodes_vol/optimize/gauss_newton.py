@@ -146,7 +146,7 @@ class VertexBlocks:
 
     def subspace(self, basis: LBSBasis, m: int) -> np.ndarray:
         """The matrix alone in the first ``m`` modes, ``(12m, 12m)`` in the T layout."""
-        C = _skinning_matrix(basis, m)
+        C = basis.skinning_matrix(m)
         A = _assemble({ab: C.T @ (H @ C) for ab, H in self.blocks.items()}, m)
         return _symmetric(A + self._outer(basis, m))
 
@@ -159,12 +159,6 @@ class VertexBlocks:
 
 def _symmetric(A: np.ndarray) -> np.ndarray:
     return 0.5 * (A + A.T)
-
-
-def _skinning_matrix(basis: LBSBasis, m: int) -> np.ndarray:
-    """``C (n, 4m)``: ``C[i, 4 j + b] = W[i, j] [x0_i 1]_b``."""
-    n = basis.X0.shape[0]
-    return (basis.W[:, :m, None] * basis.Xh[:, None, :]).reshape(n, 4 * m)
 
 
 def _assemble(blocks: dict[tuple[int, int], np.ndarray], m: int) -> np.ndarray:
@@ -189,7 +183,7 @@ def subspace_metric(basis: LBSBasis, m: int) -> np.ndarray:
     >>> bool(np.isclose(d @ G @ d, np.sum(basis.displacement(d.reshape(1, 3, 4)) ** 2)))
     True
     """
-    C = _skinning_matrix(basis, m)
+    C = basis.skinning_matrix(m)
     CtC = C.T @ C
     return _assemble({(a, a): CtC for a in range(3)}, m)
 
