@@ -31,7 +31,7 @@ from .repair import sdf_faces
 from .optimize import AdaptiveRun, OptimizationHistory, ProgressEvent, single_threaded_blas
 from .sdf import Grid, TargetSDF, build_target_sdf, closest_points, is_target_sdf_path, load_target_sdf
 from .stages import SourceEigenbasis, TargetField
-from .two_way import reverse_correspondences, source_surface_rows
+from .two_way import reverse_correspondences, closest_point_rows
 
 __all__ = ["register", "Registration", "RegistrationResult", "ground_truth_error"]
 
@@ -710,7 +710,7 @@ class Registration:
         vertices' counterparts on the target
         (:func:`~morphmodes_vol.two_way.reverse_correspondences`), and those stacked with the
         target vertices' counterparts on the source's surface
-        (:func:`~morphmodes_vol.two_way.source_surface_rows`); minimize the objective from
+        (:func:`~morphmodes_vol.two_way.closest_point_rows`); minimize the objective from
         each fit on all modes (one stage of at most ``two_way_iterations`` Levenberg-Marquardt
         steps); and compare with the ``forward`` run's result by the objective on the full
         grid. Returns the reverse registration, the two runs and the report
@@ -727,7 +727,7 @@ class Registration:
         # the reverse result lies on the source's surface, in the source's original frame
         Yd = self.normalization.apply(back.vertices)
         P = reverse_correspondences(self.X0, Yd, self.target_faces, self.Y)
-        S = source_surface_rows(self.X0, self.source_sdf_faces, Yd)
+        S = closest_point_rows(self.X0, self.source_sdf_faces, Yd)
         both = sp.vstack([sp.identity(self.X0.shape[0], format="csr"), S], format="csr")
         fits = {"reverse": self.basis.fit(P, o.modes),
                 "reverse, both sides": self.basis.fit(np.vstack([P, self.Y]), o.modes, rows=both)}

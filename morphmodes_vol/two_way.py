@@ -6,7 +6,7 @@ target: find the closest point of the deformed target to ``x_i`` (a face of ``G`
 barycentrics ``b``) and take the same barycentric point of the *undeformed* target,
 ``p_i = sum_c b_c Y[G[f, c]]`` (:func:`reverse_correspondences`). Read the other way, each
 deformed target vertex ``Yd_j`` has a closest point on the source's surface, which should land
-on ``Y_j`` (:func:`source_surface_rows`: barycentric rows over the source's vertices).
+on ``Y_j``. Both are closest points as barycentric rows (:func:`closest_point_rows`).
 :meth:`Registration.run` fits the subspace to the first, and to both stacked
 (:meth:`~morphmodes_vol.eigenbasis.LBSBasis.fit`), and lets Levenberg-Marquardt minimize the
 objective from each fit: starts that the forward runs cannot reach on some poses.
@@ -19,7 +19,7 @@ import scipy.sparse as sp
 
 from .sdf import closest_points
 
-__all__ = ["reverse_correspondences", "source_surface_rows"]
+__all__ = ["reverse_correspondences", "closest_point_rows"]
 
 
 def reverse_correspondences(X: np.ndarray, deformed: np.ndarray, faces: np.ndarray,
@@ -50,17 +50,13 @@ def reverse_correspondences(X: np.ndarray, deformed: np.ndarray, faces: np.ndarr
     >>> reverse_correspondences(np.array([[0.25, 0.25, 0.5]]), Y, tri, 2 * Y + [0, 0, 1])
     array([[0.5, 0.5, 1. ]])
     """
-    X = np.asarray(X, dtype=np.float64)
-    deformed = np.asarray(deformed, dtype=np.float64)
     rest = np.asarray(rest, dtype=np.float64)
-    faces = np.asarray(faces)
-    if deformed.shape != rest.shape:
-        raise ValueError(f"deformed {deformed.shape} and rest {rest.shape} vertices differ in shape")
-    cp = closest_points(deformed, faces, X)
-    return np.einsum("nc,ncd->nd", cp.barycentrics, rest[faces[cp.faces]])
+    if np.shape(deformed) != rest.shape:
+        raise ValueError(f"deformed {np.shape(deformed)} and rest {rest.shape} vertices differ in shape")
+    return closest_point_rows(deformed, faces, X) @ rest
 
 
-def source_surface_rows(X: np.ndarray, faces: np.ndarray, points: np.ndarray) -> sp.csr_matrix:
+def closest_point_rows(X: np.ndarray, faces: np.ndarray, points: np.ndarray) -> sp.csr_matrix:
     """The closest point of the mesh ``(X, faces)`` to each of ``points``, as a row of
     barycentric coordinates over the mesh's vertices: ``rows @ X`` are those closest points,
     and ``rows @ x`` the same surface points after the vertices move to ``x``.
@@ -79,7 +75,7 @@ def source_surface_rows(X: np.ndarray, faces: np.ndarray, points: np.ndarray) ->
     Examples
     --------
     >>> tri = np.array([[0, 1, 2]]); X = np.array([[0., 0, 0], [1, 0, 0], [0, 1, 0]])
-    >>> source_surface_rows(X, tri, np.array([[0.5, 0.5, 2.0]])).toarray()
+    >>> closest_point_rows(X, tri, np.array([[0.5, 0.5, 2.0]])).toarray()
     array([[0. , 0.5, 0.5]])
     """
     X = np.asarray(X, dtype=np.float64)

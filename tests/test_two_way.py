@@ -9,7 +9,7 @@ from morphmodes_vol.cli import _options_from_args, build_parser
 from morphmodes_vol.eigenbasis import LBSBasis, mesh_skinning_weights
 from morphmodes_vol.primitives import bend, capsule
 from morphmodes_vol.sdf import closest_points
-from morphmodes_vol.two_way import reverse_correspondences, source_surface_rows
+from morphmodes_vol.two_way import reverse_correspondences, closest_point_rows
 
 
 def test_reverse_correspondences_by_hand():
@@ -57,7 +57,7 @@ def test_subspace_fit_recovers_coefficients_and_is_a_least_squares_solution():
         basis.fit(X[:-1], 2)
     # points on the surface (barycentric rows): the normal equations B^T S^T (S x - P) = 0
     points = V * 1.1 + [0.0, 0.02, 0.0]
-    S = source_surface_rows(V, F, points)
+    S = closest_point_rows(V, F, points)
     Ts = basis.fit(points, 4, rows=S)
     gradient = basis.pullback(S.T @ (S @ basis.deform(Ts) - points), 4)
     assert np.abs(gradient).max() < 1e-9 * np.abs(basis.pullback(S.T @ (points - S @ V), 4)).max()
@@ -65,11 +65,11 @@ def test_subspace_fit_recovers_coefficients_and_is_a_least_squares_solution():
         basis.fit(points, 4, rows=S[:, :-1])
 
 
-def test_source_surface_rows_place_the_closest_points():
+def test_closest_point_rows_place_the_closest_points():
     """Identity: the rows reproduce the closest points, and each sums to 1."""
     V, F = capsule(count=(12, 12))
     points = np.random.default_rng(3).normal(scale=0.6, size=(50, 3))
-    S = source_surface_rows(V, F, points)
+    S = closest_point_rows(V, F, points)
     np.testing.assert_allclose(S @ V, closest_points(V, F, points).points, atol=1e-12)
     np.testing.assert_allclose(np.asarray(S.sum(axis=1)).ravel(), 1.0)
     assert S.shape == (50, len(V)) and S.nnz <= 150
