@@ -15,7 +15,7 @@ onto ``--sweep-targets`` (default lion-01 and lion-05). Ground-truth error:
 Methods:
 - ``ours``: :class:`morphmodes_vol.RegistrationOptions` defaults, with ``--set`` overrides;
 - ``two-way``: the same with ``two_way=True`` (the reverse registration's correspondences as
-  one more start; about twice the time);
+  two more starts; about twice the time);
 - ``paper``: the paper-faithful settings, :meth:`RegistrationOptions.paper_faithful`
   (Algorithm 1's gradient descent from the rest pose, no initialization stage, 20 modes),
   at ``--paper-grid`` (default 64, the default grid; the paper's optimizer takes 3-6 min per
