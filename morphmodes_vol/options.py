@@ -221,6 +221,22 @@ class RegistrationOptions:
         the kept result's mean ground-truth error was 0.100 with 3, 0.103 with 5 and 0.109
         with 10, and from starts turned by 2 degrees about random axes lion-05 ended at
         0.08-0.13 with 3 but at 0.09-0.53 with 10 (docs/method.md).
+    warped_pass : bool
+        After the runs, minimize the warped rest field from every start
+        (:mod:`morphmodes_vol.warped_field`: Eq. 2 pulled back to the rest pose, the rest
+        source's signed distance carried by the subspace, with no source query after one at
+        the start), refine the result of lowest objective by Levenberg-Marquardt on Eq. (3) with
+        all modes (at most ``warped_polish_iterations`` steps), and keep it when its
+        objective is lower than the runs' result (docs/method.md, "The warped rest field").
+        ``False`` (default): the runs only.
+    warped_band_cells : float
+        The warped rest field's band: grid nodes (the quadrature's spacing) within this many
+        spacings of the rest surface.
+    warped_iterations_per_stage : int
+        Levenberg-Marquardt steps per mode on the warped rest field.
+    warped_polish_iterations : int
+        Levenberg-Marquardt steps on Eq. (3) from the warped rest field's result (one stage
+        with all modes; it stops earlier when a step no longer decreases the objective).
     two_way : bool
         Also register the target onto the source (these options, one way), read the
         correspondences off that reverse registration (:mod:`morphmodes_vol.two_way`), fit the
@@ -288,6 +304,10 @@ class RegistrationOptions:
     coarse_starts: bool = True
     isometry_weight: float = 3e-4
     isometry_tolerance: float = 0.2
+    warped_pass: bool = False
+    warped_band_cells: float = 2.0
+    warped_iterations_per_stage: int = 5
+    warped_polish_iterations: int = 30
     two_way: bool = False
     two_way_iterations: int = 30
     two_way_grid: int | None = None
@@ -370,6 +390,12 @@ class RegistrationOptions:
         need(isinstance(self.init_keep_rest, bool), "init_keep_rest", "True or False")
         need(isinstance(self.icp_start, bool), "icp_start", "True or False")
         need(isinstance(self.coarse_starts, bool), "coarse_starts", "True or False")
+        need(isinstance(self.warped_pass, bool), "warped_pass", "True or False")
+        need(self.warped_band_cells > 0, "warped_band_cells", "a positive float")
+        need(_is_int(self.warped_iterations_per_stage) and self.warped_iterations_per_stage >= 1,
+             "warped_iterations_per_stage", "a positive integer")
+        need(_is_int(self.warped_polish_iterations) and self.warped_polish_iterations >= 1,
+             "warped_polish_iterations", "a positive integer")
         need(isinstance(self.two_way, bool), "two_way", "True or False")
         need(_is_int(self.two_way_iterations) and self.two_way_iterations >= 1, "two_way_iterations",
              "a positive integer")

@@ -32,6 +32,7 @@ from .optimize import AdaptiveRun, OptimizationHistory, ProgressEvent, single_th
 from .sdf import Grid, TargetSDF, build_target_sdf, closest_points, is_target_sdf_path, load_target_sdf
 from .stages import SourceEigenbasis, TargetField
 from .two_way import reverse_correspondences, closest_point_rows
+from .warped_field import WarpedRestField, ZeroEnergy
 
 __all__ = ["register", "Registration", "RegistrationResult", "ground_truth_error"]
 
@@ -40,6 +41,8 @@ log = logging.getLogger(__name__)
 
 COARSE_SUFFIX = " (coarse)"
 """Added to a start's name for its run in the coarse pass (``coarse_starts``)."""
+WARPED_PREFIX = "warped: "
+"""Put before a start's name for the run refined from the warped rest field (``warped_pass``)."""
 
 MIN_COARSE_NODES = 24
 """Fewest nodes along the longest side of the coarse pass's grid (``coarse_starts``), so
@@ -587,8 +590,16 @@ class Registration:
         else:
             # a lone run is not compared with anything (unless two_way compares it with the
             # run from the reverse registration): no objective on the full grid
-            runs = self._run_starts(starts, progress, judge=len(starts) > 1 or self.options.two_way)
+            runs = self._run_starts(starts, progress, judge=len(starts) > 1 or self.options.two_way
+                                    or self.options.warped_pass)
             chosen = _select_start([r for r in runs if r.stopped is None], factor)
+        warped_field, warped = None, {}
+        if self.options.warped_pass:
+            t_warped = time.perf_counter()
+            warped_field, warped_runs, warped = self._warped_pass(starts, chosen, progress)
+            runs += warped_runs
+            chosen = next((r for r in warped_runs if r.label == warped["kept"]), chosen)
+            timings["warped_pass"] = time.perf_counter() - t_warped
         reverse, two_way = None, {}
         if self.options.two_way:
             t_two_way = time.perf_counter()
@@ -641,6 +652,8 @@ class Registration:
                 metrics["initial_sdf_rms"], metrics["final_sdf_rms"],
             )
         metrics.update(init_summary)
+        if warped:
+            metrics["warped_pass"] = warped
         if two_way:
             metrics["two_way"] = two_way
         metrics["edge_strain"] = chosen.strain
@@ -670,7 +683,8 @@ class Registration:
         # and band refreshes, the comparisons, the initial alignment's source field; over the
         # grid's nodes, the cost in evaluations of Eq. (3) on the full grid (the paper's)
         queried = (sum(r.points_queried for r in runs) + int(compared[1])
-                   + int(init_summary.get("init_field_nodes", 0)) + rm.get("points_queried", 0))
+                   + int(init_summary.get("init_field_nodes", 0)) + rm.get("points_queried", 0)
+                   + (warped_field.nodes_queried if warped_field is not None else 0))
         metrics["points_queried"] = queried
         metrics["full_grid_equivalents"] = queried / self.Q.shape[0]
         if ground_truth is not None:
@@ -746,6 +760,41 @@ class Registration:
                   "reverse_registration_seconds": float(sum(v for k, v in back.timings.items()
                                                             if k != "sdf_queries"))}
         return back, runs, report
+
+    def _warped_pass(self, starts, forward: "_StartRun", progress):
+        """``warped_pass`` (docs/method.md, "The warped rest field"): minimize the warped rest
+        field (:class:`~morphmodes_vol.warped_field.WarpedRestField`) from every start, refine
+        the result of lowest objective on Eq. (3) (one stage with all modes), and compare
+        with the ``forward`` run's result by the objective on the full grid. Returns the
+        field, the refining run and the report (``metrics["warped_pass"]``)."""
+        o = self.options
+        h = self.quadrature.spacing
+        field = WarpedRestField(self.X0, self.source_sdf_faces, self.weights[:, :o.modes],
+                                self.sample_target, h, o.warped_band_cells * h,
+                                terms=self._with_terms(ZeroEnergy(self.X0.shape[0])),
+                                sign=o.source_sign, samples=o.occupancy_samples)
+        results, objectives = {}, {}
+        for label, T0, _ in starts:
+            run = field.minimize(np.zeros((1, 3, 4)) if T0 is None else T0, o.modes,
+                                 o.warped_iterations_per_stage)
+            results[label] = run
+            objectives[label] = self._objective(self.basis.deform(run.T))
+            log.info("warped rest field from the %s start: %d evaluations, %d steps, %.2f s, "
+                     "objective %.4g", label, run.evaluations, run.steps, run.seconds, objectives[label])
+        best = min(objectives, key=objectives.get)
+        options = o.replace(initial_modes=o.modes, lm_final_iterations=o.warped_polish_iterations)
+        runs = self._run_starts([(WARPED_PREFIX + best, results[best].T, options)], progress)
+        forward_energy = (forward.energy if forward.energy_grid == "fine"
+                          else self._objective(forward.result.vertices))
+        compared = {forward.label: forward_energy, runs[0].label: runs[0].energy}
+        kept = runs[0].label if np.isfinite(runs[0].energy) and runs[0].energy < forward_energy else forward.label
+        log.info("warped rest field: objective %s: kept the %s result",
+                 ", ".join(f"{k} {e:.4g}" for k, e in compared.items()), kept)
+        report = {"kept": kept, "objectives": compared, "field_objectives": objectives,
+                  "refined_start": best, "field_nodes": int(len(field.points)),
+                  "field_evaluations": int(sum(r.evaluations for r in results.values())),
+                  "field_seconds": float(field.build_seconds + sum(r.seconds for r in results.values()))}
+        return field, runs, report
 
     def _landmark_metrics(self, vertices: np.ndarray, target_diagonal: float) -> dict:
         """RMS landmark distance of the rest pose and of the registered ``vertices (n, 3)``,

@@ -193,10 +193,10 @@ def main() -> int:
     ap.add_argument("--set", nargs="*", default=[], metavar="OPTION=VALUE",
                     help="override options of every run of ours, e.g. --set grid=48")
     ap.add_argument("--methods", nargs="*", default=["default", "lm", "paper", "nricp"],
-                    choices=["default", "two-way", "lm", "paper", "nricp"],
-                    help="default: RegistrationOptions(); two-way: --two-way (not run unless "
-                         "named); lm: --init none --no-coarse-starts (one run from the rest "
-                         "pose); paper: RegistrationOptions.paper_faithful(); nricp: trimesh")
+                    choices=["default", "warped", "two-way", "lm", "paper", "nricp"],
+                    help="default: RegistrationOptions(); warped: --warped-pass and two-way: "
+                         "--two-way (not run unless named); lm: --init none --no-coarse-starts "
+                         "(one run from the rest pose); paper: RegistrationOptions.paper_faithful(); nricp: trimesh")
     args = ap.parse_args()
     overrides = parse_overrides(args.set)
 
@@ -213,6 +213,9 @@ def main() -> int:
             results["trimesh nricp_amberg"] = _in_child(run_nricp, source, target, target)
         if "default" in args.methods:
             results["ours, default"] = _in_child(run_ours, source, target, target, overrides)
+        if "warped" in args.methods:
+            results["ours, --warped-pass"] = _in_child(run_ours, source, target, target,
+                                                       {"warped_pass": True, **overrides})
         if "two-way" in args.methods:
             results["ours, --two-way"] = _in_child(run_ours, source, target, target,
                                                    {"two_way": True, **overrides})
