@@ -304,9 +304,9 @@ class RegistrationOptions:
     coarse_starts: bool = True
     isometry_weight: float = 3e-4
     isometry_tolerance: float = 0.2
-    warped_pass: bool = False
+    warped_pass: bool = True
     warped_band_cells: float = 2.0
-    warped_iterations_per_stage: int = 5
+    warped_iterations_per_stage: int = 3
     warped_polish_iterations: int = 30
     two_way: bool = False
     two_way_iterations: int = 30
@@ -316,10 +316,10 @@ class RegistrationOptions:
     def paper_faithful(cls) -> "RegistrationOptions":
         """The paper's settings as this library implements them (issue 2's defaults):
         Algorithm 1's gradient descent on the full grid, from the rest pose (no
-        initialization stage, one run on one grid), Eq. (3) alone (no isometry prior), 20
-        modes."""
+        initialization stage, one run on one grid, no warped rest field), Eq. (3) alone (no
+        isometry prior), 20 modes."""
         return cls(optimizer="paper", quadrature="full", initialization="none", modes=20,
-                   isometry_weight=0.0, coarse_starts=False)
+                   isometry_weight=0.0, coarse_starts=False, warped_pass=False)
 
     def __post_init__(self) -> None:
         def need(cond: bool, name: str, what: str) -> None:
@@ -331,7 +331,7 @@ class RegistrationOptions:
         for name in ("padding", "stall_start", "stall_end", "max_step", "armijo", "backtrack",
                      "vdb_half_width", "lm_damping", "lm_max_step", "lm_stall_decrease",
                      "band_cells", "band_margin_cells", "landmark_weight", "isometry_weight",
-                     "isometry_tolerance"):
+                     "isometry_tolerance", "warped_band_cells"):
             need(_is_real(getattr(self, name)), name, "a finite number")
         need(self.memory_limit_gb is None or (_is_real(self.memory_limit_gb) and self.memory_limit_gb > 0),
              "memory_limit_gb", "None or a positive number of GB")

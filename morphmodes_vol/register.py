@@ -596,7 +596,7 @@ class Registration:
         warped_field, warped = None, {}
         if self.options.warped_pass:
             t_warped = time.perf_counter()
-            warped_field, warped_runs, warped = self._warped_pass(starts, chosen, progress)
+            warped_field, warped_runs, warped, timings["warped_field"] = self._warped_pass(starts, chosen, progress)
             runs += warped_runs
             chosen = next((r for r in warped_runs if r.label == warped["kept"]), chosen)
             timings["warped_pass"] = time.perf_counter() - t_warped
@@ -766,7 +766,8 @@ class Registration:
         field (:class:`~morphmodes_vol.warped_field.WarpedRestField`) from every start, refine
         the result of lowest objective on Eq. (3) (one stage with all modes), and compare
         with the ``forward`` run's result by the objective on the full grid. Returns the
-        field, the refining run and the report (``metrics["warped_pass"]``)."""
+        field, the refining run, the report (``metrics["warped_pass"]``) and the seconds
+        spent on the field (building it and minimizing it)."""
         o = self.options
         h = self.quadrature.spacing
         field = WarpedRestField(self.X0, self.source_sdf_faces, self.weights[:, :o.modes],
@@ -787,14 +788,16 @@ class Registration:
         forward_energy = (forward.energy if forward.energy_grid == "fine"
                           else self._objective(forward.result.vertices))
         compared = {forward.label: forward_energy, runs[0].label: runs[0].energy}
-        kept = runs[0].label if np.isfinite(runs[0].energy) and runs[0].energy < forward_energy else forward.label
+        refined = runs[0].energy
+        kept = (runs[0].label if np.isfinite(refined) and not refined >= forward_energy  # NaN: refined
+                else forward.label)
         log.info("warped rest field: objective %s: kept the %s result",
                  ", ".join(f"{k} {e:.4g}" for k, e in compared.items()), kept)
         report = {"kept": kept, "objectives": compared, "field_objectives": objectives,
                   "refined_start": best, "field_nodes": int(len(field.points)),
-                  "field_evaluations": int(sum(r.evaluations for r in results.values())),
-                  "field_seconds": float(field.build_seconds + sum(r.seconds for r in results.values()))}
-        return field, runs, report
+                  "field_evaluations": int(sum(r.evaluations for r in results.values()))}
+        seconds = float(field.build_seconds + sum(r.seconds for r in results.values()))
+        return field, runs, report, seconds
 
     def _landmark_metrics(self, vertices: np.ndarray, target_diagonal: float) -> dict:
         """RMS landmark distance of the rest pose and of the registered ``vertices (n, 3)``,

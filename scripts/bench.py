@@ -193,8 +193,8 @@ def main() -> int:
     ap.add_argument("--set", nargs="*", default=[], metavar="OPTION=VALUE",
                     help="override options of every run of ours, e.g. --set grid=48")
     ap.add_argument("--methods", nargs="*", default=["default", "lm", "paper", "nricp"],
-                    choices=["default", "warped", "two-way", "lm", "paper", "nricp"],
-                    help="default: RegistrationOptions(); warped: --warped-pass and two-way: "
+                    choices=["default", "no-warped", "two-way", "lm", "paper", "nricp"],
+                    help="default: RegistrationOptions(); no-warped: --no-warped-pass and two-way: "
                          "--two-way (not run unless named); lm: --init none --no-coarse-starts "
                          "(one run from the rest pose); paper: RegistrationOptions.paper_faithful(); nricp: trimesh")
     args = ap.parse_args()
@@ -213,16 +213,16 @@ def main() -> int:
             results["trimesh nricp_amberg"] = _in_child(run_nricp, source, target, target)
         if "default" in args.methods:
             results["ours, default"] = _in_child(run_ours, source, target, target, overrides)
-        if "warped" in args.methods:
-            results["ours, --warped-pass"] = _in_child(run_ours, source, target, target,
-                                                       {"warped_pass": True, **overrides})
+        if "no-warped" in args.methods:  # the default until 2026-11-30
+            results["ours, --no-warped-pass"] = _in_child(run_ours, source, target, target,
+                                                          {"warped_pass": False, **overrides})
         if "two-way" in args.methods:
             results["ours, --two-way"] = _in_child(run_ours, source, target, target,
                                                    {"two_way": True, **overrides})
         if "lm" in args.methods:  # the fast path before the initialization stage: one run
-            results["ours, --init none --no-coarse-starts"] = _in_child(
+            results["ours, --init none --no-coarse-starts --no-warped-pass"] = _in_child(
                 run_ours, source, target, target,
-                {"initialization": "none", "coarse_starts": False, **overrides})
+                {"initialization": "none", "coarse_starts": False, "warped_pass": False, **overrides})
         if "paper" in args.methods:  # the paper-faithful settings
             results["ours, --optimizer paper"] = _in_child(
                 run_ours, source, target, target, overrides, "paper")

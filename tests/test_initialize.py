@@ -237,7 +237,7 @@ def test_two_starts_are_run_and_reported():
     X, F = asymmetric_blob()
     Y = bend(X, 0.5, axis=2, towards=0)
     opts = mm.RegistrationOptions(grid=16, modes=2, optimizer="lm", quadrature="band",
-                                  initialization="rigid", start_check_modes=99)
+                                  initialization="rigid", start_check_modes=99, warped_pass=False)
     r = mm.register((X, F), (Y, F), opts, ground_truth=Y)
     starts = r.metrics["starts"]
     assert [s["start"] for s in starts] == ["rest", "aligned", "icp"]
@@ -336,7 +336,7 @@ def test_the_choice_between_starts_made_early_is_the_final_choice_at_that_stage(
     modes keeps, and only it goes on to ``modes``."""
     X, F = asymmetric_blob()
     Y = bend(X, 0.4, axis=2, towards=0) + [0.05, 0.0, 0.0]
-    opts = mm.RegistrationOptions(grid=16, modes=5, start_check_modes=99, icp_start=False)
+    opts = mm.RegistrationOptions(grid=16, modes=5, start_check_modes=99, icp_start=False, warped_pass=False)
     short = mm.register((X, F), (Y, F), opts.replace(modes=3))
     r = mm.register((X, F), (Y, F), opts.replace(start_choice_modes=3))
     starts = {s["start"]: s for s in r.metrics["starts"]}
@@ -361,7 +361,7 @@ def test_two_starts_in_lockstep_stop_one_and_keep_the_other_run_unchanged():
     X, F = asymmetric_blob()
     Y = bend(X, 0.4, axis=2, towards=0) + [0.05, 0.0, 0.0]
     opts = mm.RegistrationOptions(grid=16, modes=5, start_check_modes=2, start_merge_distance=0.02,
-                                  icp_start=False)
+                                  icp_start=False, warped_pass=False)
     events = []
     r = mm.register((X, F), (Y, F), opts, ground_truth=Y, progress=events.append)
     full = mm.register((X, F), (Y, F), opts.replace(start_check_modes=99), ground_truth=Y)
@@ -416,7 +416,7 @@ def test_icp_start_needs_a_target_mesh():
     Y = bend(X, 0.5, axis=2, towards=0)
     lo, hi = Y.min(0) - 0.3, Y.max(0) + 0.3
     sdf = DenseTargetSDF.from_mesh(Y, F, Grid.covering(lo, hi, 24))
-    reg = mm.Registration((X, F), sdf, mm.RegistrationOptions(grid=16, modes=2))
+    reg = mm.Registration((X, F), sdf, mm.RegistrationOptions(grid=16, modes=2, warped_pass=False))
     r = reg.run()
     assert [s["start"] for s in r.metrics["starts"]] == ["rest", "aligned"]
     with pytest.raises(ValueError, match="target mesh"):
@@ -428,7 +428,8 @@ def test_three_starts_in_lockstep_merge_into_one():
     run that goes on is the same as without early stops."""
     X, F = asymmetric_blob()
     Y = bend(X, 0.4, axis=2, towards=0) + [0.05, 0.0, 0.0]
-    opts = mm.RegistrationOptions(grid=16, modes=5, start_check_modes=2, start_merge_distance=0.05)
+    opts = mm.RegistrationOptions(grid=16, modes=5, start_check_modes=2, start_merge_distance=0.05,
+                                  warped_pass=False)
     events = []
     r = mm.register((X, F), (Y, F), opts, progress=events.append)
     full = mm.register((X, F), (Y, F), opts.replace(start_check_modes=99))
@@ -471,7 +472,8 @@ def test_the_coarse_pass_compares_running_starts_on_its_own_grid(monkeypatch):
     X, F = asymmetric_blob()
     Y = bend(X, 0.5, axis=2, towards=0)
     reg = mm.Registration((X, F), (Y, F), mm.RegistrationOptions(
-        grid=48, modes=3, start_choice_modes=2, start_check_modes=99, isometry_weight=0.0))
+        grid=48, modes=3, start_choice_modes=2, start_check_modes=99, isometry_weight=0.0,
+        warped_pass=False))
     grid, idx = every_other_node(reg.quadrature)
     f = signed_distance(reg.X0, reg.source_sdf_faces, reg.Q[idx]).value
     expected = grid.cell_volume * np.sum((f - reg.g[idx]) ** 2)
@@ -512,7 +514,7 @@ def test_coarse_starts_run_every_start_coarse_then_the_kept_one_on_the_grid():
 
     X, F = asymmetric_blob()
     Y = bend(X, 0.6, axis=2, towards=0) + [0.03, 0.0, 0.0]
-    opts = mm.RegistrationOptions(grid=48, modes=3, start_check_modes=99)
+    opts = mm.RegistrationOptions(grid=48, modes=3, start_check_modes=99, warped_pass=False)
     r = mm.register((X, F), (Y, F), opts, ground_truth=Y)
     starts = r.metrics["starts"]
     labels = [s["start"] for s in starts]
@@ -600,7 +602,8 @@ def test_a_lone_run_is_not_judged_on_the_full_grid():
     judged run makes."""
     X, F = asymmetric_blob()
     Y = bend(X, 0.5, axis=2, towards=0)
-    opts = mm.RegistrationOptions(grid=24, modes=3, initialization="none", coarse_starts=False)
+    opts = mm.RegistrationOptions(grid=24, modes=3, initialization="none", coarse_starts=False,
+                                  warped_pass=False)
     reg = mm.Registration((X, F), (Y, F), opts)
     r = reg.run()
     assert r.metrics["comparison_evaluations"] == 0

@@ -104,7 +104,8 @@ def test_one_call_and_object_agree_and_options_are_checked():
 def test_iteration_caps_and_stage_bookkeeping(optimizer):
     V, F = flat_capsule()
     target = bend(V, np.deg2rad(40))
-    caps = dict(max_iterations_per_stage=5, lm_iterations_per_stage=5, lm_stall_decrease=0.0)
+    caps = dict(max_iterations_per_stage=5, lm_iterations_per_stage=5, lm_stall_decrease=0.0,
+                warped_pass=False)  # one run: its bookkeeping
     r = mm.register((V, F), (target, F), grid=16, modes=6, max_iterations=10, optimizer=optimizer,
                     stall_start=1e-9, stall_end=1e-9, initialization="none", **caps)
     h = r.history
@@ -115,7 +116,7 @@ def test_iteration_caps_and_stage_bookkeeping(optimizer):
     assert len(h.stage_seconds) == 2 and sum(h.stage_evaluations) + 1 == h.evaluations
     r = mm.register((V, F), (target, F), grid=16, modes=2, max_iterations_per_stage=3,
                     lm_iterations_per_stage=3, lm_stall_decrease=0.0, optimizer=optimizer,
-                    stall_start=1e-9, stall_end=1e-9, initialization="none")
+                    stall_start=1e-9, stall_end=1e-9, initialization="none", warped_pass=False)
     assert r.status == "stage_cap" and r.modes == 2
 
 
@@ -125,7 +126,7 @@ def test_last_stage_has_its_own_step_cap():
     V, F = flat_capsule()
     target = bend(V, np.deg2rad(40))
     common = dict(grid=16, modes=3, lm_iterations_per_stage=1, lm_stall_decrease=0.0,
-                  stall_start=1e-12, stall_end=1e-12, initialization="none")
+                  stall_start=1e-12, stall_end=1e-12, initialization="none", warped_pass=False)
     r = mm.register((V, F), (target, F), lm_final_iterations=4, **common)
     assert r.history.stage_starts == [0, 1, 2] and r.history.modes == [1, 2, 3, 3, 3, 3]
     assert r.history.stage_ends == ["iteration_cap"] * 3 and r.status == "stage_cap"

@@ -94,8 +94,9 @@ def _bent_pair():
 def test_warped_pass_keeps_the_lower_objective_and_counts_its_work():
     source, target = _bent_pair()
     options = mm.RegistrationOptions(grid=24, modes=6)
-    plain = mm.register(source, target, options, ground_truth=target[0])
-    reg = mm.Registration(source, target, options.replace(warped_pass=True))
+    assert options.warped_pass  # the default
+    plain = mm.register(source, target, options.replace(warped_pass=False), ground_truth=target[0])
+    reg = mm.Registration(source, target, options)
     r = reg.run(ground_truth=target[0])
     w = r.metrics["warped_pass"]
     objectives = w["objectives"]
@@ -129,10 +130,11 @@ def test_warped_pass_options_are_checked_and_on_the_command_line():
         mm.RegistrationOptions(warped_iterations_per_stage=0)
     with pytest.raises(mm.OptionError, match="warped_polish_iterations"):
         mm.RegistrationOptions(warped_polish_iterations=0)
-    args = build_parser().parse_args(["register", "a.obj", "b.obj", "-o", "out", "--warped-pass"])
-    assert _options_from_args(args).warped_pass
-    args = build_parser().parse_args(["register", "a.obj", "b.obj", "-o", "out"])
-    assert not _options_from_args(args).warped_pass
+    for flags, on in (([], True), (["--no-warped-pass"], False), (["--warped-pass"], True),
+                      (["--optimizer", "paper"], False), (["--optimizer", "paper", "--warped-pass"], True)):
+        args = build_parser().parse_args(["register", "a.obj", "b.obj", "-o", "out", *flags])
+        assert _options_from_args(args).warped_pass is on, flags
+    assert not mm.RegistrationOptions.paper_faithful().warped_pass
 
 
 @pytest.mark.realdata
@@ -143,7 +145,7 @@ def test_warped_pass_recovers_a_pose_the_runs_miss(data_dir):
     (docs/method.md, "The warped rest field")."""
     src = data_dir / "lion-poses" / "lion-reference.obj"
     tgt = data_dir / "lion-poses" / "lion-04.obj"
-    r = mm.register(src, tgt, ground_truth=tgt, warped_pass=True)
+    r = mm.register(src, tgt, ground_truth=tgt)  # warped_pass is the default
     w = r.metrics["warped_pass"]
     assert w["kept"].startswith("warped: ")
     assert r.metrics["ground_truth_error"] < 0.08
