@@ -151,12 +151,13 @@ def test_two_way_options_and_targets_are_checked(tmp_path):
 @pytest.mark.realdata
 @pytest.mark.slow
 def test_two_way_recovers_a_pose_the_forward_runs_miss(data_dir):
-    """lion-06 (the lion lies with its head up): every forward start ends at 0.036, the
+    """lion-06 (the lion lies with its head up), without the warped pass (which reaches 0.007
+    itself): every forward start ends at 0.036, the
     reverse registration lands next to the truth, and its correspondences lead to 0.0067 with
     a lower objective (docs/method.md, "Two-way registration")."""
     src = data_dir / "lion-poses" / "lion-reference.obj"
     tgt = data_dir / "lion-poses" / "lion-06.obj"
-    r = mm.register(src, tgt, ground_truth=tgt, two_way=True)
+    r = mm.register(src, tgt, ground_truth=tgt, two_way=True, warped_pass=False)
     objectives = r.metrics["two_way"]["objectives"]
     assert r.metrics["two_way"]["kept"] != "forward"
     assert objectives["forward"] > 1.5 * objectives[r.metrics["two_way"]["kept"]]

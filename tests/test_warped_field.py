@@ -9,8 +9,9 @@ import morphmodes_vol as mm
 from morphmodes_vol.cli import _options_from_args, build_parser
 from morphmodes_vol.eigenbasis import mesh_skinning_weights
 from morphmodes_vol.isometry import IsometryEnergy
-from morphmodes_vol.primitives import bend, capsule, icosphere
+from morphmodes_vol.primitives import capsule, icosphere
 from morphmodes_vol.warped_field import WarpedRestField, ZeroEnergy
+from test_two_way import _bent_pair  # the capsule bent by 60 degrees and stretched
 
 
 def _capsule_field(sample_target, modes=4, terms=False, spacing=0.08):
@@ -83,12 +84,6 @@ def test_field_arguments_are_checked():
     V, F = icosphere(1)
     with pytest.raises(ValueError, match="spacing and band must be positive"):
         WarpedRestField(V, F, np.ones((len(V), 1)), lambda q: q[:, 0], spacing=0.1, band=0.0)
-
-
-def _bent_pair():
-    V, F = capsule(height=1.0, radius=0.25, count=(16, 16))
-    V = V * [1.0, 0.6, 1.0]
-    return (V, F), (bend(V * [1, 1, 1.1], np.deg2rad(60)), F)
 
 
 def test_warped_pass_keeps_the_lower_objective_and_counts_its_work():
