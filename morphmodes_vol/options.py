@@ -228,12 +228,15 @@ class RegistrationOptions:
         the start), refine the result of lowest objective by Levenberg-Marquardt on Eq. (3) with
         all modes (at most ``warped_polish_iterations`` steps), and keep it when its
         objective is lower than the runs' result (docs/method.md, "The warped rest field").
-        ``False`` (default): the runs only.
+        On (default): on the accuracy study's 30 pairs the mean ground-truth error fell from
+        0.0490 to 0.0329, at 19.9 s per pair against 12.8. ``False``: the runs only (off in
+        :meth:`paper_faithful`).
     warped_band_cells : float
         The warped rest field's band: grid nodes (the quadrature's spacing) within this many
         spacings of the rest surface.
     warped_iterations_per_stage : int
-        Levenberg-Marquardt steps per mode on the warped rest field.
+        Levenberg-Marquardt steps per mode on the warped rest field (3: mean 0.0329 on the
+        accuracy study at 19.9 s per pair; 5: 0.0346 at 21.4 s).
     warped_polish_iterations : int
         Levenberg-Marquardt steps on Eq. (3) from the warped rest field's result (one stage
         with all modes; it stops earlier when a step no longer decreases the objective).
