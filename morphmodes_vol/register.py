@@ -770,8 +770,8 @@ class Registration:
         spent on the field (building it and minimizing it)."""
         o = self.options
         h = self.quadrature.spacing
-        field = WarpedRestField(self.X0, self.source_sdf_faces, self.weights[:, :o.modes],
-                                self.sample_target, h, o.warped_band_cells * h,
+        field = WarpedRestField(self.basis, self.source_sdf_faces, self.sample_target, h,
+                                o.warped_band_cells * h,
                                 terms=self._with_terms(ZeroEnergy(self.X0.shape[0])),
                                 sign=o.source_sign, samples=o.occupancy_samples)
         results, objectives = {}, {}

@@ -88,12 +88,11 @@ class WarpedRestField:
 
     Parameters
     ----------
-    X0 : (n, 3) float
-        Rest vertices (the frame of ``sample_target``).
+    basis : LBSBasis
+        The source's subspace: rest vertices ``X0 (n, 3)`` (the frame of ``sample_target``)
+        and skinning weights ``W (n, k)`` (the eigenbasis of Eq. 4).
     faces : (f, 3) int
         Source triangles (closed, or with ``sign="winding"``).
-    weights : (n, k) float
-        Skinning weights (the eigenbasis of Eq. 4).
     sample_target : callable
         ``g``: points ``(N, 3)`` -> target signed distance ``(N,)`` (trilinear in a grid).
     spacing : float
@@ -102,9 +101,9 @@ class WarpedRestField:
         Nodes with ``|f0| < band`` are kept (a length; ``2 h`` by :meth:`Registration.run`).
     terms : energy or None
         Vertex terms added to ``E_w`` (the isometry prior, landmarks): an energy with
-        ``evaluate(X)`` and optionally ``vertex_blocks(X)`` and ``normal_matrix(basis, m, X,
-        folded=True)`` (:class:`~morphmodes_vol.energy.AddedTerm`), built around a
-        :class:`ZeroEnergy` so it holds nothing else.
+        ``evaluate(X)`` and optionally ``normal_matrix(basis, m, X)``
+        (:class:`~morphmodes_vol.energy.AddedTerm`), built around a :class:`ZeroEnergy` so it
+        holds nothing else.
     sign : {"raycast", "winding"}
     samples : int
         Occupancy rays per node (``sign="raycast"``).
@@ -114,19 +113,19 @@ class WarpedRestField:
     >>> from morphmodes_vol.primitives import icosphere
     >>> V, F = icosphere(3)
     >>> W = np.ones((len(V), 1))
-    >>> field = WarpedRestField(V, F, W, lambda q: np.linalg.norm(q - [0.2, 0, 0], axis=1) - 1,
+    >>> field = WarpedRestField(LBSBasis(V, W), F, lambda q: np.linalg.norm(q - [0.2, 0, 0], axis=1) - 1,
     ...                         spacing=0.1, band=0.2)
     >>> run = field.minimize(np.zeros((1, 3, 4)), modes=1)
     >>> np.round(run.T[0, :, 3] / W[0, 0], 2)  # the translation found
     array([ 0.2, -0. , -0. ])
     """
 
-    def __init__(self, X0: np.ndarray, faces: np.ndarray, weights: np.ndarray, sample_target,
-                 spacing: float, band: float, terms=None, sign: str = "raycast", samples: int = 1):
+    def __init__(self, basis: LBSBasis, faces: np.ndarray, sample_target, spacing: float,
+                 band: float, terms=None, sign: str = "raycast", samples: int = 1):
         if not (spacing > 0 and band > 0):
             raise ValueError(f"spacing and band must be positive, got {spacing} and {band}")
         t = time.perf_counter()
-        X0 = np.asarray(X0, dtype=np.float64)
+        X0 = basis.X0
         lo, hi = X0.min(0) - band, X0.max(0) + band
         grid = Grid.covering(lo, hi, int(np.ceil(np.max(hi - lo) / spacing)) + 1)
         P = grid.points()
@@ -135,14 +134,14 @@ class WarpedRestField:
         if not near.any():
             raise ValueError("no grid node lies within the band of the rest surface; "
                              "the spacing is too coarse for the mesh")
-        corner_weights = np.asarray(weights, dtype=np.float64)[np.asarray(faces)[q.closest.faces[near]]]
+        corner_weights = basis.W[np.asarray(faces)[q.closest.faces[near]]]
         W = np.einsum("pc,pcm->pm", q.closest.barycentrics[near], corner_weights)
         self.points = P[near]
         self.f0 = q.value[near]
         self.cell_volume = grid.cell_volume
         self.nodes_queried = P.shape[0]
         self.point_basis = LBSBasis(self.points, W)
-        self.basis = LBSBasis(X0, weights)
+        self.basis = basis
         self.sample_target = sample_target
         self._step = 0.25 * spacing  # central differences of g inside a trilinear cell
         self.terms = terms
@@ -190,12 +189,9 @@ class WarpedRestField:
         half_gradient = -(C.T @ (self.cell_volume * r[:, None] * G)).reshape(m, 4, 3).transpose(0, 2, 1).ravel()
         if ev is not None:
             half_gradient = half_gradient + 0.5 * self.basis.pullback(ev.gradient, m).ravel()
-            vertex_blocks = getattr(self.terms, "vertex_blocks", None)
-            vb = None if vertex_blocks is None else vertex_blocks(X)
-            if vb is not None:
-                A = A + vb.subspace(self.basis, m)
+            # every term's Gauss-Newton block, the vertex-block ones included (not folded)
             normal_matrix = getattr(self.terms, "normal_matrix", None)
-            other = None if normal_matrix is None else normal_matrix(self.basis, m, X, folded=True)
+            other = None if normal_matrix is None else normal_matrix(self.basis, m, X)
             if other is not None:
                 A = A + other
         return E, NormalEquations(A=_symmetric(A), g=half_gradient)

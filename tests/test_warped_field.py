@@ -7,7 +7,7 @@ import pytest
 
 import morphmodes_vol as mm
 from morphmodes_vol.cli import _options_from_args, build_parser
-from morphmodes_vol.eigenbasis import mesh_skinning_weights
+from morphmodes_vol.eigenbasis import LBSBasis, mesh_skinning_weights
 from morphmodes_vol.isometry import IsometryEnergy
 from morphmodes_vol.primitives import capsule, icosphere
 from morphmodes_vol.warped_field import WarpedRestField, ZeroEnergy
@@ -18,7 +18,7 @@ def _capsule_field(sample_target, modes=4, terms=False, spacing=0.08):
     V, F = capsule(height=1.0, radius=0.25, count=(16, 16))
     W, _ = mesh_skinning_weights(V, F, modes)
     energy = IsometryEnergy(ZeroEnergy(len(V)), V, F, weight=1e-2, volume=1.0) if terms else None
-    return WarpedRestField(V, F, W, sample_target, spacing=spacing, band=2 * spacing, terms=energy), V, F, W
+    return WarpedRestField(LBSBasis(V, W), F, sample_target, spacing=spacing, band=2 * spacing, terms=energy), V, F, W
 
 
 def test_energy_by_hand_for_a_translation_and_a_linear_target():
@@ -69,7 +69,7 @@ def test_minimize_recovers_a_rigid_motion_of_a_sphere():
     V, F = icosphere(3)
     W = np.ones((len(V), 1))
     c = np.array([0.15, -0.1, 0.05])
-    field = WarpedRestField(V, F, W, lambda q: np.linalg.norm(q - c, axis=1) - 1.0, spacing=0.1, band=0.2)
+    field = WarpedRestField(LBSBasis(V, W), F, lambda q: np.linalg.norm(q - c, axis=1) - 1.0, spacing=0.1, band=0.2)
     run = field.minimize(np.zeros((1, 3, 4)), modes=1)
     moved = field.basis.deform(run.T)
     np.testing.assert_allclose(moved.mean(0), c, atol=0.01)
@@ -83,7 +83,7 @@ def test_minimize_recovers_a_rigid_motion_of_a_sphere():
 def test_field_arguments_are_checked():
     V, F = icosphere(1)
     with pytest.raises(ValueError, match="spacing and band must be positive"):
-        WarpedRestField(V, F, np.ones((len(V), 1)), lambda q: q[:, 0], spacing=0.1, band=0.0)
+        WarpedRestField(LBSBasis(V, np.ones((len(V), 1))), F, lambda q: q[:, 0], spacing=0.1, band=0.0)
 
 
 def test_warped_pass_keeps_the_lower_objective_and_counts_its_work():
