@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field as dataclass_field
 from itertools import permutations, product
 from typing import Callable
 
@@ -91,6 +91,9 @@ class InitialAlignment:
     seconds : float
     field_nodes : int
         Nodes of the source field (its one closest-point query).
+    refined_matrices : dict of int to (3, 4) float64
+        The map each refined candidate reached (keys as ``refined_energies``; the chosen one
+        is ``matrix``).
     """
 
     matrix: np.ndarray
@@ -104,6 +107,7 @@ class InitialAlignment:
     evaluations: int
     seconds: float
     field_nodes: int = 0
+    refined_matrices: dict = dataclass_field(default_factory=dict)
 
     @property
     def rotation(self) -> np.ndarray:
@@ -580,6 +584,7 @@ def align(
         rest_energy=float(rest.energy), candidates=len(starts), chosen=best_i,
         screened_energies=screened, refined_energies=refined, evaluations=spent,
         seconds=time.perf_counter() - t0, field_nodes=field.nodes,
+        refined_matrices={i: S.matrix() for i, S in finals.items()},
     )
     log.info("initial alignment: candidate %d of %d, rotation %.1f deg, scale %.3f, coarse energy "
              "%.4g (rest pose %.4g), %d evaluations of the source field (%d nodes, %.2fs) in %.2fs",
