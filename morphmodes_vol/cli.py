@@ -16,7 +16,7 @@ import numpy as np
 
 from .errors import MorphModesError
 from .export import MESH_FORMATS, write_outputs
-from .options import INITIALIZATIONS, OPTIMIZERS, PRECONDITIONERS, QUADRATURES, SIGN_METHODS, RegistrationOptions
+from .options import INITIALIZATIONS, OPTIMIZERS, PRECONDITIONERS, QUADRATURES, SIGN_METHODS, WARPED_CHOICES, RegistrationOptions
 from .sdf.target import TARGET_BACKENDS, TARGET_SDF_SUFFIXES
 
 __all__ = ["main"]
@@ -100,6 +100,12 @@ def _options_from_args(args) -> RegistrationOptions:
         changes["two_way"] = True
     if getattr(args, "warped_pass", None) is not None:
         changes["warped_pass"] = args.warped_pass
+    if getattr(args, "warped_candidates", None) is not None:
+        changes["warped_candidates"] = args.warped_candidates
+    if getattr(args, "warped_choice", None) is not None:
+        changes["warped_choice"] = args.warped_choice
+    if getattr(args, "warped_refine", None) is not None:
+        changes["warped_refine"] = args.warped_refine
     return RegistrationOptions().replace(**changes)
 
 
@@ -136,6 +142,16 @@ def _add_common(p: argparse.ArgumentParser, default_grid: int, default_modes: in
                         "subspace (no source queries) from every start, refine the best on the "
                         "SDF energy and keep the lower objective (default on, off with "
                         "--optimizer paper; docs/method.md)")
+    p.add_argument("--warped-candidates", action=argparse.BooleanOptionalAction, default=None,
+                   help="also start the warped rest field from the initialization's other "
+                        f"orientations (default {'on' if d.warped_candidates else 'off'}; docs/method.md)")
+    p.add_argument("--warped-choice", choices=list(WARPED_CHOICES), default=None,
+                   help="which warped-field results are refined: lowest 'objective' (one SDF "
+                        "evaluation each), lowest 'field' energy (none), or 'both' "
+                        f"(default {d.warped_choice!r})")
+    p.add_argument("--warped-refine", type=int, default=None,
+                   help="how many warped-field results each ranking of --warped-choice refines "
+                        f"(default {d.warped_refine})")
     p.add_argument("--two-way", action="store_true",
                    help="also register the target onto the source, start two runs from the "
                         "correspondences it implies and keep the lowest objective: about twice "
@@ -188,7 +204,9 @@ def _summary(result, paths) -> str:
     if "warped_pass" in m:
         w = m["warped_pass"]
         lines.append("warped rest field: objective " + ", ".join(f"{k} {e:.4g}" for k, e in w["objectives"].items())
-                     + f" ({w['field_evaluations']} field evaluations); kept: {w['kept']}")
+                     + f" ({w['field_evaluations']} field evaluations"
+                     + (f", {len(w['field_energies'])} field starts" if len(w.get("field_energies", ())) > 3 else "")
+                     + f"); kept: {w['kept']}")
     if "two_way" in m:
         t = m["two_way"]
         lines.append("two-way: objective " + ", ".join(f"{k} {e:.4g}" for k, e in t["objectives"].items())

@@ -500,7 +500,7 @@ class Registration:
         Xa, Xb = self._state_of(a), self._state_of(b)
         sa, sb = a.strain, b.strain
         stage = a.run.stage
-        distance = float(np.sqrt(np.mean(np.sum((Xa - Xb) ** 2, axis=1))))
+        distance = _rms(Xa - Xb)
         if distance < o.start_merge_distance:
             loser, reason = (a, "merged") if sa > sb else (b, "merged")
         else:
@@ -558,12 +558,16 @@ class Registration:
         t = time.perf_counter()
         starts: list[tuple[str, np.ndarray | None, RegistrationOptions]] = [("rest", None, self.options)]
         init_summary = {}
+        candidates = []  # the initialization's other orientations (warped_candidates)
         if self.options.initialization != "none":
             aligned_options = self.options.replace(
                 lm_iterations_per_stage=self.options.init_lm_iterations_per_stage)
             alignment = self.initial_alignment()
             init_summary = alignment.summary()
             aligned = [("aligned", self._start_coefficients(alignment.matrix), aligned_options)]
+            if self.options.warped_candidates:
+                candidates = [(f"candidate {i}", self._start_coefficients(M))
+                              for i, M in alignment.refined_matrices.items() if i != alignment.chosen]
             if self.options.icp_start:
                 if self.Y is None:
                     log.info("no target mesh (an SDF target): no ICP start")
@@ -596,7 +600,8 @@ class Registration:
         warped_field, warped = None, {}
         if self.options.warped_pass:
             t_warped = time.perf_counter()
-            warped_field, warped_runs, warped, timings["warped_field"] = self._warped_pass(starts, chosen, progress)
+            warped_field, warped_runs, warped, timings["warped_field"] = self._warped_pass(
+                starts, chosen, progress, candidates)
             runs += warped_runs
             chosen = next((r for r in warped_runs if r.label == warped["kept"]), chosen)
             timings["warped_pass"] = time.perf_counter() - t_warped
@@ -761,40 +766,61 @@ class Registration:
                                                             if k != "sdf_queries"))}
         return back, runs, report
 
-    def _warped_pass(self, starts, forward: "_StartRun", progress):
+    def _warped_pass(self, starts, forward: "_StartRun", progress, candidates=()):
         """``warped_pass`` (docs/method.md, "The warped rest field"): minimize the warped rest
-        field (:class:`~morphmodes_vol.warped_field.WarpedRestField`) from every start, refine
-        the result of lowest objective on Eq. (3) (one stage with all modes), and compare
-        with the ``forward`` run's result by the objective on the full grid. Returns the
-        field, the refining run, the report (``metrics["warped_pass"]``) and the seconds
-        spent on the field (building it and minimizing it)."""
+        field (:class:`~morphmodes_vol.warped_field.WarpedRestField`) from every start (and
+        from ``candidates``, ``(label, T0)`` pairs: the initialization stage's other
+        orientations with ``warped_candidates``), refine the field result of lowest objective
+        and/or of lowest field energy (``warped_choice``) on Eq. (3) (one stage with all
+        modes), and compare with the ``forward`` run's result by the objective on the full
+        grid. Returns the field, the refining runs, the report (``metrics["warped_pass"]``)
+        and the seconds spent on the field (building it and minimizing it)."""
         o = self.options
         h = self.quadrature.spacing
         field = WarpedRestField(self.basis, self.source_sdf_faces, self.sample_target, h,
                                 o.warped_band_cells * h,
                                 terms=self._with_terms(ZeroEnergy(self.X0.shape[0])),
                                 sign=o.source_sign, samples=o.occupancy_samples)
+        field_starts = [(label, np.zeros((1, 3, 4)) if T0 is None else T0) for label, T0, _ in starts]
+        skipped = []
+        for label, T0 in candidates:  # other orientations; one that repeats a start is skipped
+            X = self.basis.deform(T0)
+            if any(_rms(X - self.basis.deform(T)) < o.start_merge_distance for _, T in field_starts):
+                skipped.append(label)
+            else:
+                field_starts.append((label, T0))
         results, objectives = {}, {}
-        for label, T0, _ in starts:
-            run = field.minimize(np.zeros((1, 3, 4)) if T0 is None else T0, o.modes,
-                                 o.warped_iterations_per_stage)
+        for label, T0 in field_starts:
+            run = field.minimize(T0, o.modes, o.warped_iterations_per_stage)
             results[label] = run
-            objectives[label] = self._objective(self.basis.deform(run.T))
+            if o.warped_choice != "field":
+                objectives[label] = self._objective(self.basis.deform(run.T))
             log.info("warped rest field from the %s start: %d evaluations, %d steps, %.2f s, "
-                     "objective %.4g", label, run.evaluations, run.steps, run.seconds, objectives[label])
-        best = min(objectives, key=objectives.get)
+                     "field energy %.4g%s", label, run.evaluations, run.steps, run.seconds, run.energy,
+                     f", objective {objectives[label]:.4g}" if label in objectives else "")
+        energies = {label: r.energy for label, r in results.items()}
+        chosen = []  # the lowest warped_refine by each ranking, in that order, once each
+        if o.warped_choice != "field":
+            chosen += sorted(objectives, key=objectives.get)[:o.warped_refine]
+        if o.warped_choice != "objective":
+            chosen += sorted(energies, key=energies.get)[:o.warped_refine]
+        chosen = list(dict.fromkeys(chosen))
         options = o.replace(initial_modes=o.modes, lm_final_iterations=o.warped_polish_iterations)
-        runs = self._run_starts([(WARPED_PREFIX + best, results[best].T, options)], progress)
+        runs = [self._run_starts([(WARPED_PREFIX + label, results[label].T, options)], progress)[0]
+                for label in chosen]
+        best = min(runs, key=lambda r: r.energy if np.isfinite(r.energy) else np.inf)
         forward_energy = (forward.energy if forward.energy_grid == "fine"
                           else self._objective(forward.result.vertices))
-        compared = {forward.label: forward_energy, runs[0].label: runs[0].energy}
-        refined = runs[0].energy
-        kept = (runs[0].label if np.isfinite(refined) and not refined >= forward_energy  # NaN: refined
+        compared = {forward.label: forward_energy, **{r.label: r.energy for r in runs}}
+        refined = best.energy
+        kept = (best.label if np.isfinite(refined) and not refined >= forward_energy  # NaN: refined
                 else forward.label)
         log.info("warped rest field: objective %s: kept the %s result",
                  ", ".join(f"{k} {e:.4g}" for k, e in compared.items()), kept)
         report = {"kept": kept, "objectives": compared, "field_objectives": objectives,
-                  "refined_start": best, "field_nodes": int(len(field.points)),
+                  "field_energies": energies, "refined_start": best.label[len(WARPED_PREFIX):],
+                  "refined_starts": chosen, "skipped_candidates": skipped,
+                  "field_nodes": int(len(field.points)),
                   "field_evaluations": int(sum(r.evaluations for r in results.values()))}
         seconds = float(field.build_seconds + sum(r.seconds for r in results.values()))
         return field, runs, report, seconds
@@ -849,6 +875,12 @@ def _comparison_counters(evaluators) -> tuple[int, int, float]:
 def _labelled(progress: Callable[[ProgressEvent], None], label: str) -> Callable[[ProgressEvent], None]:
     """``progress`` with the events' ``start`` set to ``label``."""
     return lambda event: progress(replace(event, start=label))
+
+
+def _rms(D: np.ndarray) -> float:
+    """RMS length of the rows of ``D (n, 3)``: the RMS distance between two placements of
+    the vertices."""
+    return float(np.sqrt(np.mean(np.sum(D**2, axis=1))))
 
 
 def _select_start(runs: list[_StartRun], factor: float) -> _StartRun:

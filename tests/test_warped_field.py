@@ -97,8 +97,10 @@ def test_warped_pass_keeps_the_lower_objective_and_counts_its_work():
     objectives = w["objectives"]
     refined = "warped: " + w["refined_start"]
     assert list(objectives) == [plain.metrics["start"], refined]
-    assert w["refined_start"] == min(w["field_objectives"], key=w["field_objectives"].get)
-    assert set(w["field_objectives"]) == {"rest", "aligned", "icp"}
+    # the defaults: every start and candidate on the field, the lowest field energy refined
+    assert options.warped_candidates and options.warped_choice == "field" and w["field_objectives"] == {}
+    assert w["refined_start"] == min(w["field_energies"], key=w["field_energies"].get)
+    assert {"rest", "aligned", "icp"} < set(w["field_energies"])
     # the runs' part is the registration without the pass, judged on the full grid
     assert objectives[plain.metrics["start"]] == pytest.approx(
         reg._objective(reg.normalization.apply(plain.vertices)), rel=1e-12)
@@ -116,6 +118,57 @@ def test_warped_pass_keeps_the_lower_objective_and_counts_its_work():
     assert r.metrics["ground_truth_error"] < 0.2 * r.metrics["identity_error"]
 
 
+def test_warped_candidates_and_the_choice_by_field_energy():
+    """``warped_candidates`` adds the initialization's other orientations as field starts,
+    skipping those that repeat a start; ``warped_choice`` picks the field results refined:
+    ``"both"`` the lowest objective and the lowest field energy, ``"field"`` the latter
+    without evaluating the objective of any field result."""
+    source, target = _bent_pair()
+    options = mm.RegistrationOptions(grid=24, modes=6, warped_candidates=True, warped_choice="both")
+    reg = mm.Registration(source, target, options)
+    r = reg.run(ground_truth=target[0])
+    w = r.metrics["warped_pass"]
+    alignment = reg.initial_alignment()
+    np.testing.assert_array_equal(alignment.refined_matrices[alignment.chosen], alignment.matrix)
+    others = {f"candidate {i}" for i in alignment.refined_matrices if i != alignment.chosen}
+    energies, objectives = w["field_energies"], w["field_objectives"]
+    assert set(energies) == {"rest", "aligned", "icp"} | (others - set(w["skipped_candidates"]))
+    assert set(objectives) == set(energies) and len(energies) > 3
+    # a skipped candidate maps the source within start_merge_distance of a start taken
+    taken = [np.zeros((1, 3, 4)), reg._start_coefficients(alignment.matrix),
+             reg._start_coefficients(reg.icp_alignment().matrix)]
+    taken += [reg._start_coefficients(alignment.refined_matrices[int(k.split()[1])])
+              for k in energies if k.startswith("candidate")]
+    for k in w["skipped_candidates"]:
+        X = reg.basis.deform(reg._start_coefficients(alignment.refined_matrices[int(k.split()[1])]))
+        assert min(np.sqrt(np.mean(np.sum((X - reg.basis.deform(T)) ** 2, axis=1))) for T in taken) \
+            < options.start_merge_distance
+    chosen = [min(objectives, key=objectives.get), min(energies, key=energies.get)]
+    assert w["refined_starts"] == list(dict.fromkeys(chosen))
+    refined = {k: e for k, e in w["objectives"].items() if k.startswith("warped: ")}
+    assert list(refined) == ["warped: " + k for k in w["refined_starts"]]
+    assert "warped: " + w["refined_start"] == min(refined, key=refined.get)
+    assert w["kept"] == min(w["objectives"], key=w["objectives"].get)
+    assert r.metrics["ground_truth_error"] < 0.2 * r.metrics["identity_error"]
+
+    by_field = mm.Registration(source, target, options.replace(warped_choice="field")).run()
+    wf = by_field.metrics["warped_pass"]
+    assert wf["field_objectives"] == {}
+    assert wf["refined_starts"] == [min(wf["field_energies"], key=wf["field_energies"].get)]
+    np.testing.assert_allclose(list(wf["field_energies"].values()), list(energies.values()), rtol=1e-9)
+    # one full-grid evaluation per field result fewer than "both"
+    assert by_field.metrics["comparison_evaluations"] < r.metrics["comparison_evaluations"] - 3
+
+    # warped_refine=2: the two lowest field energies are refined, the lower objective wins
+    two = mm.Registration(source, target, options.replace(warped_choice="field", warped_refine=2)).run()
+    w2 = two.metrics["warped_pass"]
+    assert w2["refined_starts"] == sorted(w2["field_energies"], key=w2["field_energies"].get)[:2]
+    refined = {k: e for k, e in w2["objectives"].items() if k.startswith("warped: ")}
+    assert len(refined) == 2 and "warped: " + w2["refined_start"] == min(refined, key=refined.get)
+    assert w2["objectives"]["warped: " + wf["refined_start"]] == pytest.approx(
+        wf["objectives"]["warped: " + wf["refined_start"]], rel=1e-9)
+
+
 def test_warped_pass_options_are_checked_and_on_the_command_line():
     with pytest.raises(mm.OptionError, match="warped_pass"):
         mm.RegistrationOptions(warped_pass=1)
@@ -125,11 +178,23 @@ def test_warped_pass_options_are_checked_and_on_the_command_line():
         mm.RegistrationOptions(warped_iterations_per_stage=0)
     with pytest.raises(mm.OptionError, match="warped_polish_iterations"):
         mm.RegistrationOptions(warped_polish_iterations=0)
+    with pytest.raises(mm.OptionError, match="warped_candidates"):
+        mm.RegistrationOptions(warped_candidates="yes")
+    with pytest.raises(mm.OptionError, match="warped_choice"):
+        mm.RegistrationOptions(warped_choice="energy")
+    with pytest.raises(mm.OptionError, match="warped_refine"):
+        mm.RegistrationOptions(warped_refine=0)
     for flags, on in (([], True), (["--no-warped-pass"], False), (["--warped-pass"], True),
                       (["--optimizer", "paper"], False), (["--optimizer", "paper", "--warped-pass"], True)):
         args = build_parser().parse_args(["register", "a.obj", "b.obj", "-o", "out", *flags])
         assert _options_from_args(args).warped_pass is on, flags
     assert not mm.RegistrationOptions.paper_faithful().warped_pass
+    for flags, change in (([], {}), (["--warped-candidates"], {"warped_candidates": True}),
+                          (["--no-warped-candidates"], {"warped_candidates": False}),
+                          (["--warped-choice", "field"], {"warped_choice": "field"}),
+                          (["--warped-refine", "2"], {"warped_refine": 2})):
+        args = build_parser().parse_args(["register", "a.obj", "b.obj", "-o", "out", *flags])
+        assert _options_from_args(args) == mm.RegistrationOptions().replace(**change), flags
 
 
 @pytest.mark.realdata
