@@ -232,7 +232,8 @@ class RegistrationOptions:
         Eq. (3) with all modes (at most ``warped_polish_iterations`` steps), and keep it when its
         objective is lower than the runs' result (docs/method.md, "The warped rest field").
         On (default): on the accuracy study's 30 pairs the mean ground-truth error fell from
-        0.0490 to 0.0329, at 19.9 s per pair against 12.8. ``False``: the runs only (off in
+        0.0490 to 0.0329 (three starts), at 19.9 s per pair against 12.8, and to 0.0279 with
+        the defaults of ``warped_candidates`` and ``warped_choice`` (24.1 s). ``False``: the runs only (off in
         :meth:`paper_faithful`).
     warped_band_cells : float
         The warped rest field's band: grid nodes (the quadrature's spacing) within this many
@@ -260,8 +261,8 @@ class RegistrationOptions:
     warped_refine : int
         How many field results ``warped_choice`` picks by each of its rankings (the lowest
         ``warped_refine``): each is refined, and the refined result of lowest objective is
-        compared with the runs' result (2: the same study mean, 0.0278, at about 3 s more
-        per pair).
+        compared with the runs' result (2: the same study mean, 0.0278, at 26 s per pair
+        against 24).
     two_way : bool
         Also register the target onto the source (these options, one way), read the
         correspondences off that reverse registration (:mod:`morphmodes_vol.two_way`), fit the
