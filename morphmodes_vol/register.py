@@ -801,9 +801,9 @@ class Registration:
         energies = {label: r.energy for label, r in results.items()}
         chosen = []  # the lowest warped_refine by each ranking, in that order, once each
         if o.warped_choice != "field":
-            chosen += sorted(objectives, key=objectives.get)[:o.warped_refine]
+            chosen += _ascending(objectives)[:o.warped_refine]
         if o.warped_choice != "objective":
-            chosen += sorted(energies, key=energies.get)[:o.warped_refine]
+            chosen += _ascending(energies)[:o.warped_refine]
         chosen = list(dict.fromkeys(chosen))
         options = o.replace(initial_modes=o.modes, lm_final_iterations=o.warped_polish_iterations)
         runs = [self._run_starts([(WARPED_PREFIX + label, results[label].T, options)], progress)[0]
@@ -875,6 +875,12 @@ def _comparison_counters(evaluators) -> tuple[int, int, float]:
 def _labelled(progress: Callable[[ProgressEvent], None], label: str) -> Callable[[ProgressEvent], None]:
     """``progress`` with the events' ``start`` set to ``label``."""
     return lambda event: progress(replace(event, start=label))
+
+
+def _ascending(values: dict) -> list:
+    """The keys of ``values`` by ascending value, NaN and infinite values last, ties in
+    their order."""
+    return sorted(values, key=lambda k: (not np.isfinite(values[k]), np.nan_to_num(values[k], nan=0.0)))
 
 
 def _rms(D: np.ndarray) -> float:

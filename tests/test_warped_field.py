@@ -169,6 +169,12 @@ def test_warped_candidates_and_the_choice_by_field_energy():
         wf["objectives"]["warped: " + wf["refined_start"]], rel=1e-9)
 
 
+def test_field_results_are_ranked_with_nan_last():
+    """A field result whose energy is NaN (or infinite) is never refined before a finite one."""
+    from morphmodes_vol.register import _ascending
+    assert _ascending({"a": 3.0, "b": np.nan, "c": 1.0, "d": np.inf, "e": 1.0}) == ["c", "e", "a", "b", "d"]
+
+
 def test_warped_pass_options_are_checked_and_on_the_command_line():
     with pytest.raises(mm.OptionError, match="warped_pass"):
         mm.RegistrationOptions(warped_pass=1)
