@@ -799,22 +799,38 @@ class Registration:
                      "field energy %.4g%s", label, run.evaluations, run.steps, run.seconds, run.energy,
                      f", objective {objectives[label]:.4g}" if label in objectives else "")
         energies = {label: r.energy for label, r in results.items()}
+        rankings = ([objectives] if o.warped_choice != "field" else []) + \
+                   ([energies] if o.warped_choice != "objective" else [])
+        start_labels = [label for label, _, _ in starts]
         chosen = []  # the lowest warped_refine by each ranking, in that order, once each
-        if o.warped_choice != "field":
-            chosen += _ascending(objectives)[:o.warped_refine]
-        if o.warped_choice != "objective":
-            chosen += _ascending(energies)[:o.warped_refine]
+        for values in rankings:
+            chosen += _ascending(values)[:o.warped_refine]
+            if chosen[-1] not in start_labels:  # a candidate first: the best start's too
+                chosen += _ascending({k: values[k] for k in start_labels})[:1]
         chosen = list(dict.fromkeys(chosen))
         options = o.replace(initial_modes=o.modes, lm_final_iterations=o.warped_polish_iterations)
         runs = [self._run_starts([(WARPED_PREFIX + label, results[label].T, options)], progress)[0]
                 for label in chosen]
-        best = min(runs, key=lambda r: r.energy if np.isfinite(r.energy) else np.inf)
         forward_energy = (forward.energy if forward.energy_grid == "fine"
                           else self._objective(forward.result.vertices))
         compared = {forward.label: forward_energy, **{r.label: r.energy for r in runs}}
-        refined = best.energy
-        kept = (best.label if np.isfinite(refined) and not refined >= forward_energy  # NaN: refined
-                else forward.label)
+        # the orientation prior, as the initialization's (init_switch): a result from another
+        # orientation is kept only when its objective is below warped_candidate_ratio times
+        # every result from the starts' (a shape with a symmetry ties across orientations)
+        own = {forward.label: forward_energy, **{r.label: r.energy for r, label in zip(runs, chosen)
+                                                 if label in start_labels}}
+        other = {r.label: r.energy for r, label in zip(runs, chosen) if label not in start_labels}
+        kept = forward.label
+        best_own = _ascending(own)[0]
+        if best_own != forward.label and np.isfinite(own[best_own]) and not own[best_own] >= forward_energy:
+            kept = best_own  # NaN forward: the refined one
+        if other:
+            best_other = _ascending(other)[0]
+            bar = o.warped_candidate_ratio * own[kept]
+            if np.isfinite(other[best_other]) and not other[best_other] >= bar:
+                kept = best_other
+        best = next((r for r in runs if r.label == kept), min(
+            runs, key=lambda r: r.energy if np.isfinite(r.energy) else np.inf))
         log.info("warped rest field: objective %s: kept the %s result",
                  ", ".join(f"{k} {e:.4g}" for k, e in compared.items()), kept)
         report = {"kept": kept, "objectives": compared, "field_objectives": objectives,
