@@ -233,7 +233,7 @@ class RegistrationOptions:
         objective is lower than the runs' result (docs/method.md, "The warped rest field").
         On (default): on the accuracy study's 30 pairs the mean ground-truth error fell from
         0.0490 to 0.0329 (three starts), at 19.9 s per pair against 12.8, and to 0.0279 with
-        the defaults of ``warped_candidates`` and ``warped_choice`` (24.1 s). ``False``: the runs only (off in
+        the defaults of ``warped_candidates`` and ``warped_choice`` (24.3 s). ``False``: the runs only (off in
         :meth:`paper_faithful`).
     warped_band_cells : float
         The warped rest field's band: grid nodes (the quadrature's spacing) within this many
