@@ -16,7 +16,8 @@ import numpy as np
 
 from .errors import MorphModesError
 from .export import MESH_FORMATS, write_outputs
-from .options import INITIALIZATIONS, OPTIMIZERS, PRECONDITIONERS, QUADRATURES, SIGN_METHODS, WARPED_CHOICES, RegistrationOptions
+from .options import (INITIALIZATIONS, OPTIMIZERS, PRECONDITIONERS, QUADRATURES, SIGN_METHODS, WARPED_CHOICES,
+                      RegistrationOptions)
 from .sdf.target import TARGET_BACKENDS, TARGET_SDF_SUFFIXES
 
 __all__ = ["main"]
@@ -205,7 +206,8 @@ def _summary(result, paths) -> str:
         w = m["warped_pass"]
         lines.append("warped rest field: objective " + ", ".join(f"{k} {e:.4g}" for k, e in w["objectives"].items())
                      + f" ({w['field_evaluations']} field evaluations"
-                     + (f", {len(w['field_energies'])} field starts" if len(w.get("field_energies", ())) > 3 else "")
+                     + (f", {len(w['field_energies'])} field starts" if len(w.get("field_energies", ())) > 3
+                        else "")
                      + f"); kept: {w['kept']}")
     if "two_way" in m:
         t = m["two_way"]

@@ -18,7 +18,8 @@ from .sdf.source import SignMethod
 from .sdf.target import TARGET_BACKENDS, TargetBackend
 
 __all__ = ["RegistrationOptions", "Preconditioner", "PRECONDITIONERS", "SIGN_METHODS", "Optimizer",
-           "OPTIMIZERS", "Quadrature", "QUADRATURES", "Initialization", "INITIALIZATIONS", "WarpedChoice", "WARPED_CHOICES"]
+           "OPTIMIZERS", "Quadrature", "QUADRATURES", "Initialization", "INITIALIZATIONS", "WarpedChoice",
+           "WARPED_CHOICES"]
 
 Preconditioner = Literal["block", "none"]
 PRECONDITIONERS = typing.get_args(Preconditioner)
@@ -230,11 +231,12 @@ class RegistrationOptions:
         source's signed distance carried by the subspace, with no source query after one at
         the start), refine the result picked by ``warped_choice`` by Levenberg-Marquardt on
         Eq. (3) with all modes (at most ``warped_polish_iterations`` steps), and keep it when its
-        objective is lower than the runs' result (docs/method.md, "The warped rest field").
-        On (default): on the accuracy study's 30 pairs the mean ground-truth error fell from
-        0.0490 to 0.0329 (three starts), at 19.9 s per pair against 12.8, and to 0.0279 with
-        the defaults of ``warped_candidates`` and ``warped_choice`` (24.3 s). ``False``: the runs only (off in
-        :meth:`paper_faithful`).
+        objective is lower than the runs' result (for a candidate's, by the factor
+        ``warped_candidate_ratio``; docs/method.md, "The warped rest field"). On (default):
+        on the accuracy study's 30 pairs the mean ground-truth error fell from 0.0490 to
+        0.0329 (three starts), at 19.9 s per pair against 12.8, and to 0.0279 with the
+        defaults of ``warped_candidates`` and ``warped_choice`` (24.3 s). ``False``: the
+        runs only (off in :meth:`paper_faithful`).
     warped_band_cells : float
         The warped rest field's band: grid nodes (the quadrature's spacing) within this many
         spacings of the rest surface.
@@ -269,9 +271,9 @@ class RegistrationOptions:
         accuracy study (0.0279 against 0.0278) without an evaluation per field result.
     warped_refine : int
         How many field results ``warped_choice`` picks by each of its rankings (the lowest
-        ``warped_refine``): each is refined, and the refined result of lowest objective is
-        compared with the runs' result (2: the same study mean, 0.0278, at 26 s per pair
-        against 24).
+        ``warped_refine``): each is refined, and the refined results compete with the runs'
+        result as ``warped_candidate_ratio`` says (2: the same study mean, 0.0278, at 26 s
+        per pair against 24).
     two_way : bool
         Also register the target onto the source (these options, one way), read the
         correspondences off that reverse registration (:mod:`morphmodes_vol.two_way`), fit the
