@@ -565,7 +565,7 @@ class Registration:
             alignment = self.initial_alignment()
             init_summary = alignment.summary()
             aligned = [("aligned", self._start_coefficients(alignment.matrix), aligned_options)]
-            if self.options.warped_candidates:
+            if self.options.warped_pass and self.options.warped_candidates:
                 candidates = [(f"candidate {i}", self._start_coefficients(M))
                               for i, M in alignment.refined_matrices.items() if i != alignment.chosen]
             if self.options.icp_start:
@@ -782,13 +782,14 @@ class Registration:
                                 terms=self._with_terms(ZeroEnergy(self.X0.shape[0])),
                                 sign=o.source_sign, samples=o.occupancy_samples)
         field_starts = [(label, np.zeros((1, 3, 4)) if T0 is None else T0) for label, T0, _ in starts]
-        skipped = []
+        skipped, placed = [], [self.basis.deform(T) for _, T in field_starts]
         for label, T0 in candidates:  # other orientations; one that repeats a start is skipped
             X = self.basis.deform(T0)
-            if any(_rms(X - self.basis.deform(T)) < o.start_merge_distance for _, T in field_starts):
+            if any(_rms(X - P) < o.start_merge_distance for P in placed):
                 skipped.append(label)
             else:
                 field_starts.append((label, T0))
+                placed.append(X)
         results, objectives = {}, {}
         for label, T0 in field_starts:
             run = field.minimize(T0, o.modes, o.warped_iterations_per_stage)
@@ -820,10 +821,7 @@ class Registration:
         own = {forward.label: forward_energy, **{r.label: r.energy for r, label in zip(runs, chosen)
                                                  if label in start_labels}}
         other = {r.label: r.energy for r, label in zip(runs, chosen) if label not in start_labels}
-        kept = forward.label
-        best_own = _ascending(own)[0]
-        if best_own != forward.label and np.isfinite(own[best_own]) and not own[best_own] >= forward_energy:
-            kept = best_own  # NaN forward: the refined one
+        kept = _ascending(own)[0]  # the forward result first among ties; a NaN one last
         if other:
             best_other = _ascending(other)[0]
             bar = o.warped_candidate_ratio * own[kept]
