@@ -107,6 +107,10 @@ def _options_from_args(args) -> RegistrationOptions:
         changes["warped_choice"] = args.warped_choice
     if getattr(args, "warped_refine", None) is not None:
         changes["warped_refine"] = args.warped_refine
+    if getattr(args, "warped_prune_modes", None) is not None:
+        changes["warped_prune_modes"] = args.warped_prune_modes
+    if getattr(args, "warped_prune_ratio", None) is not None:
+        changes["warped_prune_ratio"] = args.warped_prune_ratio
     return RegistrationOptions().replace(**changes)
 
 
@@ -153,6 +157,12 @@ def _add_common(p: argparse.ArgumentParser, default_grid: int, default_modes: in
     p.add_argument("--warped-refine", type=int, default=None,
                    help="how many warped-field results each ranking of --warped-choice refines "
                         f"(default {d.warped_refine})")
+    p.add_argument("--warped-prune-modes", type=int, default=None,
+                   help="the warped rest field goes past this many modes only from the starts whose "
+                        "field energy is within --warped-prune-ratio of the lowest there (0: from every "
+                        f"start; default {d.warped_prune_modes})")
+    p.add_argument("--warped-prune-ratio", type=float, default=None,
+                   help=f"see --warped-prune-modes (default {d.warped_prune_ratio})")
     p.add_argument("--two-way", action="store_true",
                    help="also register the target onto the source, start two runs from the "
                         "correspondences it implies and keep the lowest objective: about twice "

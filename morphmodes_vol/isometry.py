@@ -167,10 +167,8 @@ class IsometryEnergy(AddedTerm):
         ah = self.shares * h
         # dE/drho = 2 c P^T (a h), P = I - 1 a^T the removal of the weighted mean
         g_rho = 2.0 * self.coefficient * (ah - self.shares * ah.sum())
-        g_e = g_rho[:, None] * drho
-        grad = np.zeros((self.n, 3))
-        np.add.at(grad, self.edges[:, 0], g_e)
-        np.add.at(grad, self.edges[:, 1], -g_e)
+        # D^T (g_rho drho): + on each edge's first vertex, - on its second
+        grad = np.asarray(self._incidence.T @ (g_rho[:, None] * drho))
         return self.coefficient * float(ah @ h), grad
 
     def term_vertex_blocks(self, X: np.ndarray) -> VertexBlocks:

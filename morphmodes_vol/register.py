@@ -770,7 +770,9 @@ class Registration:
         """``warped_pass`` (docs/method.md, "The warped rest field"): minimize the warped rest
         field (:class:`~morphmodes_vol.warped_field.WarpedRestField`) from every start (and
         from ``candidates``, ``(label, T0)`` pairs: the initialization stage's other
-        orientations with ``warped_candidates``), refine the field result of lowest objective
+        orientations with ``warped_candidates``; past ``warped_prune_modes`` modes only from
+        those of field energy within ``warped_prune_ratio`` of the lowest), refine the field
+        result of lowest objective
         and/or of lowest field energy (``warped_choice``) on Eq. (3) (one stage with all
         modes), and compare with the ``forward`` run's result by the objective on the full
         grid. Returns the field, the refining runs, the report (``metrics["warped_pass"]``)
@@ -790,9 +792,24 @@ class Registration:
             else:
                 field_starts.append((label, T0))
                 placed.append(X)
+        # every start to warped_prune_modes modes, then those of field energy within
+        # warped_prune_ratio of the lowest to the end
+        K = o.warped_prune_modes if 0 < o.warped_prune_modes < o.modes else o.modes
+        first = {label: field.minimize(T0, K, o.warped_iterations_per_stage) for label, T0 in field_starts}
+        finite = [r.energy for r in first.values() if np.isfinite(r.energy)]
+        pruned = {}
+        if K < o.modes and finite:
+            bar = o.warped_prune_ratio * min(finite)
+            pruned = {label: r.energy for label, r in first.items() if not r.energy <= bar}
+            if pruned:
+                log.info("warped rest field: %d of %d starts stopped after %d modes (field energy "
+                         "above %.3g)", len(pruned), len(first), K, bar)
         results, objectives = {}, {}
-        for label, T0 in field_starts:
-            run = field.minimize(T0, o.modes, o.warped_iterations_per_stage)
+        for label, begun in first.items():
+            if label in pruned:
+                continue
+            run = begun if K == o.modes else begun.then(field.minimize(
+                begun.T, o.modes, o.warped_iterations_per_stage, first_mode=K + 1, start_damping=begun.damping))
             results[label] = run
             if o.warped_choice != "field":
                 objectives[label] = self._objective(self.basis.deform(run.T))
@@ -807,7 +824,7 @@ class Registration:
         for values in rankings:
             chosen += _ascending(values)[:o.warped_refine]
             if chosen[-1] not in start_labels:  # a candidate first: the best start's too
-                chosen += _ascending({k: values[k] for k in start_labels})[:1]
+                chosen += _ascending({k: values[k] for k in start_labels if k in values})[:1]
         chosen = list(dict.fromkeys(chosen))
         options = o.replace(initial_modes=o.modes, lm_final_iterations=o.warped_polish_iterations)
         runs = [self._run_starts([(WARPED_PREFIX + label, results[label].T, options)], progress)[0]
@@ -834,9 +851,14 @@ class Registration:
         report = {"kept": kept, "objectives": compared, "field_objectives": objectives,
                   "field_energies": energies, "refined_start": best.label[len(WARPED_PREFIX):],
                   "refined_starts": chosen, "skipped_candidates": skipped,
+                  "pruned": pruned, "prune_modes": K if K < o.modes else None,
+                  "field_energies_at_prune": ({label: r.energy for label, r in first.items()}
+                                              if K < o.modes else {}),
                   "field_nodes": int(len(field.points)),
-                  "field_evaluations": int(sum(r.evaluations for r in results.values()))}
-        seconds = float(field.build_seconds + sum(r.seconds for r in results.values()))
+                  "field_evaluations": int(sum(r.evaluations for r in results.values())
+                                           + sum(first[label].evaluations for label in pruned))}
+        seconds = float(field.build_seconds + sum(r.seconds for r in results.values())
+                        + sum(first[label].seconds for label in pruned))
         return field, runs, report, seconds
 
     def _landmark_metrics(self, vertices: np.ndarray, target_diagonal: float) -> dict:

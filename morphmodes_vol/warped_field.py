@@ -73,6 +73,11 @@ class WarpedRun:
     steps : int
         Accepted Levenberg-Marquardt steps.
     seconds : float
+    stage_energies : (stages,) float
+        The energy at the end of each stage (after ``first_mode - 1 + i + 1`` modes).
+    damping : float
+        Levenberg-Marquardt's damping at the end, to continue with (:meth:`minimize`'s
+        ``damping``).
     """
 
     T: np.ndarray
@@ -80,6 +85,16 @@ class WarpedRun:
     evaluations: int
     steps: int
     seconds: float
+    stage_energies: np.ndarray
+    damping: float
+
+    def then(self, later: "WarpedRun") -> "WarpedRun":
+        """This run followed by ``later``, its continuation (:meth:`WarpedRestField.minimize`
+        from this run's ``T`` and ``damping``): ``later``'s result, the counts of both."""
+        return WarpedRun(T=later.T, energy=later.energy, evaluations=self.evaluations + later.evaluations,
+                         steps=self.steps + later.steps, seconds=self.seconds + later.seconds,
+                         stage_energies=np.concatenate([self.stage_energies, later.stage_energies]),
+                         damping=later.damping)
 
 
 class WarpedRestField:
@@ -197,19 +212,26 @@ class WarpedRestField:
         return E, NormalEquations(A=_symmetric(A), g=half_gradient)
 
     def minimize(self, T0: np.ndarray, modes: int, iterations_per_stage: int = 5,
-                 stall_decrease: float = 1e-3, damping: float = 1e-3) -> WarpedRun:
-        """Minimize ``E_w`` from ``T0 (k, 3, 4)``, adding one mode per stage up to ``modes``
-        (Algorithm 1's schedule), each stage by at most ``iterations_per_stage``
-        Levenberg-Marquardt steps (damping in the metric of the vertex motion, as
-        :func:`~morphmodes_vol.optimize.gauss_newton.lm_solve`); a stage ends when a step
-        lowers the energy by less than the fraction ``stall_decrease``."""
+                 stall_decrease: float = 1e-3, damping: float = 1e-3, first_mode: int = 1,
+                 start_damping: float | None = None) -> WarpedRun:
+        """Minimize ``E_w`` from ``T0 (k, 3, 4)``, adding one mode per stage from
+        ``first_mode`` up to ``modes`` (Algorithm 1's schedule), each stage by at most
+        ``iterations_per_stage`` Levenberg-Marquardt steps (damping in the metric of the
+        vertex motion, as :func:`~morphmodes_vol.optimize.gauss_newton.lm_solve`, from
+        ``start_damping`` (default ``damping``), back to ``damping`` when no step is
+        accepted); a stage ends when a step lowers the energy by less than the fraction
+        ``stall_decrease``. ``run.then(minimize(run.T, M, first_mode=m + 1,
+        start_damping=run.damping))`` continues a run of ``m`` modes as if it had not stopped."""
+        if not 1 <= first_mode <= modes:
+            raise ValueError(f"first_mode must lie in [1, modes={modes}], got {first_mode}")
         t = time.perf_counter()
         before = self.evaluations
         T = np.zeros((modes, 3, 4))
         k = min(len(T0), modes)
         T[:k] = np.asarray(T0, dtype=np.float64)[:k]
-        lam, steps, E = damping, 0, float("nan")
-        for m in range(1, modes + 1):
+        lam = damping if start_damping is None else start_damping
+        steps, E, stages = 0, float("nan"), []
+        for m in range(first_mode, modes + 1):
             metric = subspace_metric(self.basis, m)
             E, normal = self.evaluate(T, m)
             for _ in range(iterations_per_stage):
@@ -231,6 +253,6 @@ class WarpedRestField:
                 E, normal = self.evaluate(T, m)
                 if decrease < stall_decrease:
                     break
+            stages.append(E)
         return WarpedRun(T=T, energy=E, evaluations=self.evaluations - before, steps=steps,
-                         seconds=time.perf_counter() - t)
-
+                         seconds=time.perf_counter() - t, stage_energies=np.array(stages), damping=lam)

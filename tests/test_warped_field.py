@@ -84,6 +84,24 @@ def test_field_arguments_are_checked():
     V, F = icosphere(1)
     with pytest.raises(ValueError, match="spacing and band must be positive"):
         WarpedRestField(LBSBasis(V, np.ones((len(V), 1))), F, lambda q: q[:, 0], spacing=0.1, band=0.0)
+    field, *_ = _capsule_field(lambda q: q[:, 0], modes=2)
+    with pytest.raises(ValueError, match="first_mode"):
+        field.minimize(np.zeros((1, 3, 4)), modes=2, first_mode=3)
+
+
+def test_a_run_stopped_and_continued_is_the_run_not_stopped():
+    """Identity: minimizing to 2 of 4 modes, then from the 3rd mode with the damping reached,
+    is the run to 4 modes (its blocks, energies and counts)."""
+    field, *_ = _capsule_field(lambda q: np.linalg.norm(q * [1.3, 1.0, 0.8], axis=1) - 0.45,
+                               modes=4, terms=True)
+    whole = field.minimize(np.zeros((1, 3, 4)), modes=4, iterations_per_stage=3)
+    half = field.minimize(np.zeros((1, 3, 4)), modes=2, iterations_per_stage=3)
+    both = half.then(field.minimize(half.T, 4, 3, first_mode=3, start_damping=half.damping))
+    np.testing.assert_array_equal(both.T, whole.T)
+    np.testing.assert_array_equal(both.stage_energies, whole.stage_energies)
+    assert len(whole.stage_energies) == 4 and both.energy == whole.energy == whole.stage_energies[-1]
+    assert (both.evaluations, both.steps, both.damping) == (whole.evaluations, whole.steps, whole.damping)
+    assert np.all(np.diff(whole.stage_energies) <= 0)  # each mode lowers the energy, or keeps it
 
 
 def _check_kept(w, forward_label, ratio):
@@ -185,6 +203,35 @@ def test_warped_candidates_and_the_choice_by_field_energy():
     _check_kept(w2, next(iter(w2["objectives"])), options.warped_candidate_ratio)
 
 
+def test_field_starts_far_above_the_lowest_stop_early():
+    """``warped_prune_modes``: every field start runs to that many modes; only those within
+    ``warped_prune_ratio`` of the lowest field energy there go on, to the same results as
+    without stopping any (the continuation is exact)."""
+    source, target = _bent_pair()
+    # the bent capsule's field starts all end within 3% of each other: a tight ratio
+    options = mm.RegistrationOptions(grid=24, modes=10, warped_prune_modes=2, warped_prune_ratio=1.01)
+    r = mm.register(source, target, options)
+    w = r.metrics["warped_pass"]
+    at = w["field_energies_at_prune"]
+    assert w["prune_modes"] == 2 and len(at) > 3
+    assert w["pruned"] == {k: e for k, e in at.items() if e > 1.01 * min(at.values())}
+    assert w["pruned"] and set(w["field_energies"]) == set(at) - set(w["pruned"])
+    assert not set(w["refined_starts"]) & set(w["pruned"])
+
+    every = mm.register(source, target, options.replace(warped_prune_modes=0))
+    we = every.metrics["warped_pass"]
+    assert we["pruned"] == {} and we["prune_modes"] is None and we["field_energies_at_prune"] == {}
+    assert set(we["field_energies"]) == set(at)
+    for k, e in w["field_energies"].items():
+        assert e == pytest.approx(we["field_energies"][k], rel=1e-9)
+    assert we["field_evaluations"] > w["field_evaluations"]
+    if w["refined_starts"] == we["refined_starts"]:
+        np.testing.assert_allclose(r.vertices, every.vertices, atol=1e-9)
+    # a ratio no start exceeds stops none, and prune_modes >= modes is off
+    for change in ({"warped_prune_ratio": 1e12}, {"warped_prune_modes": 10}):
+        assert mm.register(source, target, options.replace(**change)).metrics["warped_pass"]["pruned"] == {}
+
+
 def test_a_candidate_that_ties_with_a_start_is_not_kept():
     """A capsule bent by 50 degrees is symmetric end over end: the initialization's candidate
     turned by 180 degrees ties with the rest start (field energy and objective within 0.1%)
@@ -223,6 +270,10 @@ def test_warped_pass_options_are_checked_and_on_the_command_line():
         mm.RegistrationOptions(warped_candidate_ratio=1.5)
     with pytest.raises(mm.OptionError, match="warped_refine"):
         mm.RegistrationOptions(warped_refine=0)
+    with pytest.raises(mm.OptionError, match="warped_prune_modes"):
+        mm.RegistrationOptions(warped_prune_modes=-1)
+    with pytest.raises(mm.OptionError, match="warped_prune_ratio"):
+        mm.RegistrationOptions(warped_prune_ratio=0.5)
     for flags, on in (([], True), (["--no-warped-pass"], False), (["--warped-pass"], True),
                       (["--optimizer", "paper"], False), (["--optimizer", "paper", "--warped-pass"], True)):
         args = build_parser().parse_args(["register", "a.obj", "b.obj", "-o", "out", *flags])
@@ -231,7 +282,9 @@ def test_warped_pass_options_are_checked_and_on_the_command_line():
     for flags, change in (([], {}), (["--warped-candidates"], {"warped_candidates": True}),
                           (["--no-warped-candidates"], {"warped_candidates": False}),
                           (["--warped-choice", "field"], {"warped_choice": "field"}),
-                          (["--warped-refine", "2"], {"warped_refine": 2})):
+                          (["--warped-refine", "2"], {"warped_refine": 2}),
+                          (["--warped-prune-modes", "0"], {"warped_prune_modes": 0}),
+                          (["--warped-prune-ratio", "3"], {"warped_prune_ratio": 3.0})):
         args = build_parser().parse_args(["register", "a.obj", "b.obj", "-o", "out", *flags])
         assert _options_from_args(args) == mm.RegistrationOptions().replace(**change), flags
 

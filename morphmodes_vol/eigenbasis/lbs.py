@@ -55,6 +55,7 @@ class LBSBasis:
             raise ValueError(f"W must have shape ({self.X0.shape[0]}, m), got {self.W.shape}")
         self.Xh = np.hstack([self.X0, np.ones((self.X0.shape[0], 1))])  # [X0 1], (n, 4)
         self._gram: np.ndarray | None = None
+        self._skinning: np.ndarray | None = None
 
     @property
     def max_modes(self) -> int:
@@ -63,11 +64,9 @@ class LBSBasis:
     def displacement(self, T: np.ndarray) -> np.ndarray:
         """``B z`` as an ``(n, 3)`` array, for blocks ``T (m, 3, 4)`` with ``m <= m_max``."""
         m = T.shape[0]
-        Wm = self.W[:, :m]
-        out = np.zeros_like(self.X0)
-        for k in range(4):  # four (n, m) @ (m, 3) products, no (n, 4m) intermediate
-            out += self.Xh[:, k : k + 1] * (Wm @ T[:, :, k])
-        return out
+        # one (n, m) @ (m, 12) product: every vertex's blended block, then times [x0 1]
+        blended = (self.W[:, :m] @ np.asarray(T, dtype=np.float64).reshape(m, 12)).reshape(-1, 3, 4)
+        return np.einsum("nab,nb->na", blended, self.Xh)
 
     def deform(self, T: np.ndarray) -> np.ndarray:
         """Deformed vertices ``x0 + B z`` (Eq. 6), ``(n, 3)``."""
@@ -76,11 +75,9 @@ class LBSBasis:
     def pullback(self, G: np.ndarray, m: int) -> np.ndarray:
         """``B^T g`` for a per-vertex gradient ``G (n, 3)``: the gradient with respect to the
         first ``m`` blocks, ``(m, 3, 4)``, ``dE/dT_j = G^T diag(w_j) [X0 1]``."""
-        Wm = self.W[:, :m]
-        out = np.empty((m, 3, 4))
-        for k in range(4):
-            out[:, :, k] = Wm.T @ (G * self.Xh[:, k : k + 1])
-        return out
+        # one (m, n) @ (n, 12) product over the outer products g_i [x0_i 1]^T
+        outer = (np.asarray(G, dtype=np.float64)[:, :, None] * self.Xh[:, None, :]).reshape(-1, 12)
+        return (self.W[:, :m].T @ outer).reshape(m, 3, 4)
 
     def gram_blocks(self, m: int) -> np.ndarray:
         """Per-mode Gram matrices ``[X0 1]^T diag(w_j)^2 [X0 1]``, ``(m, 4, 4)``.
@@ -96,9 +93,13 @@ class LBSBasis:
     def skinning_matrix(self, m: int) -> np.ndarray:
         """``C (n, 4m)``, ``C[i, 4 j + b] = W[i, j] [x0_i 1]_b``: each coordinate of the
         displacement is ``C`` times that coordinate's coefficients (Eq. 6), and ``B = C kron
-        I3`` (Eq. 5)."""
-        n = self.X0.shape[0]
-        return (self.W[:, :m, None] * self.Xh[:, None, :]).reshape(n, 4 * m)
+        I3`` (Eq. 5). Read-only: the last one built is kept for the next call."""
+        # the optimizer asks for one m many times in a row: the last one is kept (read-only)
+        if self._skinning is None or self._skinning.shape[1] != 4 * m:
+            n = self.X0.shape[0]
+            self._skinning = (self.W[:, :m, None] * self.Xh[:, None, :]).reshape(n, 4 * m)
+            self._skinning.flags.writeable = False
+        return self._skinning
 
     def fit(self, X: np.ndarray, m: int, rows: sp.spmatrix | None = None) -> np.ndarray:
         """The blocks ``T (m, 3, 4)`` whose deformation is closest to ``X`` in the least

@@ -152,8 +152,12 @@ class VertexBlocks:
 
     def _outer(self, basis: LBSBasis, m: int) -> np.ndarray:
         out = np.zeros((12 * m, 12 * m))
+        pulled = {}  # the terms share their vectors: each pulled back once
         for c, u, v in self.outer:
-            out += c * np.outer(basis.pullback(u, m).reshape(-1), basis.pullback(v, m).reshape(-1))
+            for x in (u, v):
+                if id(x) not in pulled:
+                    pulled[id(x)] = basis.pullback(x, m).reshape(-1)
+            out += c * np.outer(pulled[id(u)], pulled[id(v)])
         return out
 
 
