@@ -277,12 +277,13 @@ class RegistrationOptions:
     warped_prune_modes : int
         The warped pass minimizes the field from every start to this many modes first; only
         the results whose field energy ``E_w`` is at most ``warped_prune_ratio`` times the
-        lowest go on to ``modes`` (0, or at least ``modes``: every start to the end). The
-        cost of a mode grows with the modes before it, so a start stopped at 8 of 20 modes
-        has cost about a tenth of a whole run. 8 (default): measured on the accuracy study's
-        30 pairs (187 field starts), the start of lowest ``E_w`` at 20 modes had at 8 modes
-        at most 1.24 times the lowest ``E_w``, and a ratio of 2 stops 74 starts there
-        (docs/method.md, "The warped rest field").
+        lowest go on to ``modes`` (0, or at least ``modes``: every start to the end). A
+        stage's matrices grow with the square of the active modes, so a start stopped at 8
+        of 20 modes has cost a small part of a whole run. 8 (default): measured on the
+        accuracy study's 30 pairs (187 field starts), the start of lowest ``E_w`` at 20
+        modes had at 8 modes at most 1.24 times the lowest ``E_w``, and a ratio of 2 stops
+        74 starts there; the same 30 errors at 19.8 s per pair against 24.3 (docs/method.md,
+        "Stopping field starts early").
     warped_prune_ratio : float
         See ``warped_prune_modes`` (at least 1).
     two_way : bool

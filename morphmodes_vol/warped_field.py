@@ -74,7 +74,7 @@ class WarpedRun:
         Accepted Levenberg-Marquardt steps.
     seconds : float
     stage_energies : (stages,) float
-        The energy at the end of each stage (after ``first_mode - 1 + i + 1`` modes).
+        The energy at the end of each stage: entry ``i`` with ``first_mode + i`` modes.
     damping : float
         Levenberg-Marquardt's damping at the end, to continue with (:meth:`minimize`'s
         ``damping``).
