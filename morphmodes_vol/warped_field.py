@@ -234,7 +234,7 @@ class WarpedRestField:
         for m in range(first_mode, modes + 1):
             metric = subspace_metric(self.basis, m)
             E, normal = self.evaluate(T, m)
-            for _ in range(iterations_per_stage):
+            for iteration in range(iterations_per_stage):
                 accepted = False
                 while lam <= 1e8:
                     trial = T.copy()
@@ -249,10 +249,10 @@ class WarpedRestField:
                     lam = damping
                     break
                 decrease = (E - E_trial) / max(E, 1e-300)
-                T, steps = trial, steps + 1
-                E, normal = self.evaluate(T, m)
-                if decrease < stall_decrease:
-                    break
+                T, E, steps = trial, E_trial, steps + 1
+                if decrease < stall_decrease or iteration == iterations_per_stage - 1:
+                    break  # the stage ends: no model at T in these m modes is needed
+                _, normal = self.evaluate(T, m)
             stages.append(E)
         return WarpedRun(T=T, energy=E, evaluations=self.evaluations - before, steps=steps,
                          seconds=time.perf_counter() - t, stage_energies=np.array(stages), damping=lam)
