@@ -282,7 +282,7 @@ class RegistrationOptions:
         of 20 modes has cost a small part of a whole run. 8 (default): measured on the
         accuracy study's 30 pairs (187 field starts), the start of lowest ``E_w`` at 20
         modes had at 8 modes at most 1.24 times the lowest ``E_w``, and a ratio of 2 stops
-        74 starts there; the same 30 errors at 19.8 s per pair against 24.3 (docs/method.md,
+        74 starts there; the same 30 errors at 17.7 s per pair against 24.3 (docs/method.md,
         "Stopping field starts early").
     warped_prune_ratio : float
         See ``warped_prune_modes`` (at least 1).
