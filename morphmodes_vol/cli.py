@@ -61,14 +61,15 @@ class ProgressPrinter:
             self.stream.flush()
 
 
+#: command-line flags whose destination is the :class:`RegistrationOptions` field of that name
+_SAME_NAMED_OPTIONS = ("target_grid", "max_iterations", "preconditioner", "quadrature", "target_backend",
+                       "target_sign", "landmark_weight", "isometry_weight", "coarse_starts", "warped_pass",
+                       "warped_candidates", "warped_choice", "warped_refine", "warped_prune_modes",
+                       "warped_prune_ratio")
+
+
 def _options_from_args(args) -> RegistrationOptions:
     changes = {"grid": args.grid, "modes": args.modes, "seed": args.seed}
-    if args.target_grid is not None:
-        changes["target_grid"] = args.target_grid
-    if args.max_iterations is not None:
-        changes["max_iterations"] = args.max_iterations
-    if args.preconditioner is not None:
-        changes["preconditioner"] = args.preconditioner
     if args.optimizer is not None:
         changes["optimizer"] = args.optimizer
         if args.quadrature is None:  # each optimizer with its quadrature unless asked
@@ -81,36 +82,18 @@ def _options_from_args(args) -> RegistrationOptions:
             changes["coarse_starts"] = False
         if args.optimizer == "paper" and getattr(args, "warped_pass", None) is None:  # and no warped field
             changes["warped_pass"] = False
-    if args.quadrature is not None:
-        changes["quadrature"] = args.quadrature
+    # flags named as their option, given (not None) on the commands that have them: they
+    # override the optimizer's choices above
+    for name in _SAME_NAMED_OPTIONS:
+        value = getattr(args, name, None)
+        if value is not None:
+            changes[name] = value
     if args.memory_limit is not None:
         changes["memory_limit_gb"] = None if args.memory_limit <= 0 else args.memory_limit
-    if args.target_backend is not None:
-        changes["target_backend"] = args.target_backend
-    if args.target_sign is not None:
-        changes["target_sign"] = args.target_sign
-    if getattr(args, "landmark_weight", None) is not None:
-        changes["landmark_weight"] = args.landmark_weight
     if args.init is not None:
         changes["initialization"] = args.init
-    if getattr(args, "isometry_weight", None) is not None:
-        changes["isometry_weight"] = args.isometry_weight
-    if getattr(args, "coarse_starts", None) is not None:
-        changes["coarse_starts"] = args.coarse_starts
     if getattr(args, "two_way", False):
         changes["two_way"] = True
-    if getattr(args, "warped_pass", None) is not None:
-        changes["warped_pass"] = args.warped_pass
-    if getattr(args, "warped_candidates", None) is not None:
-        changes["warped_candidates"] = args.warped_candidates
-    if getattr(args, "warped_choice", None) is not None:
-        changes["warped_choice"] = args.warped_choice
-    if getattr(args, "warped_refine", None) is not None:
-        changes["warped_refine"] = args.warped_refine
-    if getattr(args, "warped_prune_modes", None) is not None:
-        changes["warped_prune_modes"] = args.warped_prune_modes
-    if getattr(args, "warped_prune_ratio", None) is not None:
-        changes["warped_prune_ratio"] = args.warped_prune_ratio
     return RegistrationOptions().replace(**changes)
 
 

@@ -795,10 +795,11 @@ class Registration:
         # every start to warped_prune_modes modes, then those of field energy within
         # warped_prune_ratio of the lowest to the end
         K = o.warped_prune_modes if 0 < o.warped_prune_modes < o.modes else o.modes
+        staged = K < o.modes
         first = {label: field.minimize(T0, K, o.warped_iterations_per_stage) for label, T0 in field_starts}
         finite = [r.energy for r in first.values() if np.isfinite(r.energy)]
         pruned = {}
-        if K < o.modes and finite:
+        if staged and finite:
             bar = o.warped_prune_ratio * min(finite)
             pruned = {label: r.energy for label, r in first.items() if not r.energy <= bar}
             if pruned:
@@ -808,7 +809,7 @@ class Registration:
         for label, begun in first.items():
             if label in pruned:
                 continue
-            run = begun if K == o.modes else begun.then(field.minimize(
+            run = begun if not staged else begun.then(field.minimize(
                 begun.T, o.modes, o.warped_iterations_per_stage, first_mode=K + 1, start_damping=begun.damping))
             results[label] = run
             if o.warped_choice != "field":
@@ -851,14 +852,12 @@ class Registration:
         report = {"kept": kept, "objectives": compared, "field_objectives": objectives,
                   "field_energies": energies, "refined_start": best.label[len(WARPED_PREFIX):],
                   "refined_starts": chosen, "skipped_candidates": skipped,
-                  "pruned": pruned, "prune_modes": K if K < o.modes else None,
-                  "field_energies_at_prune": ({label: r.energy for label, r in first.items()}
-                                              if K < o.modes else {}),
-                  "field_nodes": int(len(field.points)),
-                  "field_evaluations": int(sum(r.evaluations for r in results.values())
-                                           + sum(first[label].evaluations for label in pruned))}
-        seconds = float(field.build_seconds + sum(r.seconds for r in results.values())
-                        + sum(first[label].seconds for label in pruned))
+                  "pruned": pruned, "prune_modes": K if staged else None,
+                  "field_energies_at_prune": {label: r.energy for label, r in first.items()} if staged else {},
+                  "field_nodes": int(len(field.points))}
+        spent = [*results.values(), *(first[label] for label in pruned)]  # every field run, whole
+        report["field_evaluations"] = int(sum(r.evaluations for r in spent))
+        seconds = float(field.build_seconds + sum(r.seconds for r in spent))
         return field, runs, report, seconds
 
     def _landmark_metrics(self, vertices: np.ndarray, target_diagonal: float) -> dict:
