@@ -65,7 +65,7 @@ class ProgressPrinter:
 _SAME_NAMED_OPTIONS = ("target_grid", "max_iterations", "preconditioner", "quadrature", "target_backend",
                        "target_sign", "landmark_weight", "isometry_weight", "coarse_starts", "warped_pass",
                        "warped_candidates", "warped_choice", "warped_refine", "warped_prune_modes",
-                       "warped_prune_ratio")
+                       "warped_prune_ratio", "warped_hops", "warped_hop_iterations")
 
 
 def _options_from_args(args) -> RegistrationOptions:
@@ -146,6 +146,12 @@ def _add_common(p: argparse.ArgumentParser, default_grid: int, default_modes: in
                         f"start; default {d.warped_prune_modes})")
     p.add_argument("--warped-prune-ratio", type=float, default=None,
                    help=f"see --warped-prune-modes (default {d.warped_prune_ratio})")
+    p.add_argument("--warped-hops", type=int, default=None,
+                   help="after the warped pass, at most this many hops from the kept result: the "
+                        "warped field minimized with all modes, refined on the SDF energy, kept when "
+                        f"its objective is lower (0: none; default {d.warped_hops}; docs/method.md)")
+    p.add_argument("--warped-hop-iterations", type=int, default=None,
+                   help=f"the field's steps in a hop (default {d.warped_hop_iterations})")
     p.add_argument("--two-way", action="store_true",
                    help="also register the target onto the source, start two runs from the "
                         "correspondences it implies and keep the lowest objective: about twice "
@@ -201,7 +207,9 @@ def _summary(result, paths) -> str:
                      + f" ({w['field_evaluations']} field evaluations"
                      + (f", {len(w['field_energies'])} field starts" if len(w.get("field_energies", ())) > 3
                         else "")
-                     + f"); kept: {w['kept']}")
+                     + f"); kept: {w['kept_before_hops']}"
+                     + "".join(f"; {h['start']} from the {h['from']}: objective {h['objective']:.4g}, "
+                               + ("kept" if h["accepted"] else "not kept") for h in w.get("hops", ())))
     if "two_way" in m:
         t = m["two_way"]
         lines.append("two-way: objective " + ", ".join(f"{k} {e:.4g}" for k, e in t["objectives"].items())

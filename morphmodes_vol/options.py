@@ -286,6 +286,17 @@ class RegistrationOptions:
         "Stopping field starts early").
     warped_prune_ratio : float
         See ``warped_prune_modes`` (at least 1).
+    warped_hops : int
+        After the warped pass has chosen its result (the runs' or a refined field result),
+        at most this many *hops* through the field's landscape: the field ``E_w`` minimized
+        from the kept result with all modes at once (at most ``warped_hop_iterations``
+        Levenberg-Marquardt steps), then refined on Eq. (3) as a field result is
+        (``warped_polish_iterations``), kept when its objective is lower, the next hop from
+        there; the hops end at the first that does not lower the objective. The two
+        energies have different local minima, so a result stuck in one's can leave it
+        through the other's (docs/method.md, "Hops through the field"). 0: none.
+    warped_hop_iterations : int
+        The field's Levenberg-Marquardt steps of a hop (at least 1).
     two_way : bool
         Also register the target onto the source (these options, one way), read the
         correspondences off that reverse registration (:mod:`morphmodes_vol.two_way`), fit the
@@ -363,6 +374,8 @@ class RegistrationOptions:
     warped_refine: int = 1
     warped_prune_modes: int = 8
     warped_prune_ratio: float = 2.0
+    warped_hops: int = 1
+    warped_hop_iterations: int = 20
     two_way: bool = False
     two_way_iterations: int = 30
     two_way_grid: int | None = None
@@ -460,6 +473,9 @@ class RegistrationOptions:
              "a non-negative integer (0: off)")
         need(_is_real(self.warped_prune_ratio) and self.warped_prune_ratio >= 1, "warped_prune_ratio",
              "a float of at least 1")
+        need(_is_int(self.warped_hops) and self.warped_hops >= 0, "warped_hops", "a non-negative integer (0: off)")
+        need(_is_int(self.warped_hop_iterations) and self.warped_hop_iterations >= 1, "warped_hop_iterations",
+             "a positive integer")
         need(isinstance(self.two_way, bool), "two_way", "True or False")
         need(_is_int(self.two_way_iterations) and self.two_way_iterations >= 1, "two_way_iterations",
              "a positive integer")

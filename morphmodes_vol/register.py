@@ -775,7 +775,9 @@ class Registration:
         result of lowest objective
         and/or of lowest field energy (``warped_choice``) on Eq. (3) (one stage with all
         modes), and compare with the ``forward`` run's result by the objective on the full
-        grid. Returns the field, the refining runs, the report (``metrics["warped_pass"]``)
+        grid (``objectives`` and ``kept_before_hops`` in the report); then hop from the kept
+        result (``warped_hops``: the field minimized from it with all modes, refined on
+        Eq. 3, kept when its objective is lower; ``hops`` in the report). Returns the field, the refining runs, the report (``metrics["warped_pass"]``)
         and the seconds spent on the field (building it and minimizing it)."""
         o = self.options
         h = self.quadrature.spacing
@@ -849,13 +851,31 @@ class Registration:
             runs, key=lambda r: r.energy if np.isfinite(r.energy) else np.inf))
         log.info("warped rest field: objective %s: kept the %s result",
                  ", ".join(f"{k} {e:.4g}" for k, e in compared.items()), kept)
-        report = {"kept": kept, "objectives": compared, "field_objectives": objectives,
+        # hops through the field's landscape from the kept result (warped_hops): the field's
+        # minimum near it, refined on Eq. (3), kept when its objective is lower
+        before_hops, current, objective = kept, forward if kept == forward.label else best, compared[kept]
+        hops, hop_fields = [], []
+        for i in range(o.warped_hops if np.isfinite(objective) else 0):
+            moved = field.minimize(current.result.T, o.modes, o.warped_hop_iterations, first_mode=o.modes)
+            hop_fields.append(moved)
+            run = self._run_starts([(f"{WARPED_PREFIX}hop {i + 1}", moved.T, options)], progress)[0]
+            runs.append(run)
+            accepted = bool(run.energy < objective)
+            hops.append({"start": run.label, "from": current.label, "field_energy": float(moved.energy),
+                         "objective": float(run.energy), "accepted": accepted})
+            log.info("%s from the %s result: field energy %.4g, objective %.4g against %.4g: %s", run.label,
+                     current.label, moved.energy, run.energy, objective, "kept" if accepted else "not kept")
+            if not accepted:
+                break
+            kept, current, objective = run.label, run, run.energy
+        report = {"kept": kept, "kept_before_hops": before_hops, "objectives": compared,
+                  "field_objectives": objectives,
                   "field_energies": energies, "refined_start": best.label[len(WARPED_PREFIX):],
                   "refined_starts": chosen, "skipped_candidates": skipped,
                   "pruned": pruned, "prune_modes": K if staged else None,
                   "field_energies_at_prune": {label: r.energy for label, r in first.items()} if staged else {},
-                  "field_nodes": int(len(field.points))}
-        spent = [*results.values(), *(first[label] for label in pruned)]  # every field run, whole
+                  "field_nodes": int(len(field.points)), "hops": hops}
+        spent = [*results.values(), *(first[label] for label in pruned), *hop_fields]  # every field run, whole
         report["field_evaluations"] = int(sum(r.evaluations for r in spent))
         seconds = float(field.build_seconds + sum(r.seconds for r in spent))
         return field, runs, report, seconds
