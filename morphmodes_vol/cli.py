@@ -65,7 +65,8 @@ class ProgressPrinter:
 _SAME_NAMED_OPTIONS = ("target_grid", "max_iterations", "preconditioner", "quadrature", "target_backend",
                        "target_sign", "landmark_weight", "isometry_weight", "coarse_starts", "warped_pass",
                        "warped_candidates", "warped_choice", "warped_refine", "warped_prune_modes",
-                       "warped_prune_ratio", "warped_hops", "warped_hop_iterations")
+                       "warped_prune_ratio", "warped_hops", "warped_hop_iterations",
+                       "warped_hop_ratio")
 
 
 def _options_from_args(args) -> RegistrationOptions:
@@ -152,6 +153,9 @@ def _add_common(p: argparse.ArgumentParser, default_grid: int, default_modes: in
                         f"its objective is lower (0: none; default {d.warped_hops}; docs/method.md)")
     p.add_argument("--warped-hop-iterations", type=int, default=None,
                    help=f"the field's steps in a hop (default {d.warped_hop_iterations})")
+    p.add_argument("--warped-hop-ratio", type=float, default=None,
+                   help="a hop is kept only when its objective is below this times the result it "
+                        f"left (default {d.warped_hop_ratio})")
     p.add_argument("--two-way", action="store_true",
                    help="also register the target onto the source, start two runs from the "
                         "correspondences it implies and keep the lowest objective: about twice "

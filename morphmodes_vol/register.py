@@ -777,7 +777,8 @@ class Registration:
         modes), and compare with the ``forward`` run's result by the objective on the full
         grid (``objectives`` and ``kept_before_hops`` in the report); then hop from the kept
         result (``warped_hops``: the field minimized from it with all modes, refined on
-        Eq. 3, kept when its objective is lower; ``hops`` in the report). Returns the field, the refining runs, the report (``metrics["warped_pass"]``)
+        Eq. 3, kept when its objective is below ``warped_hop_ratio`` times; ``hops`` in the
+        report). Returns the field, the refining runs, the report (``metrics["warped_pass"]``)
         and the seconds spent on the field (building it and minimizing it)."""
         o = self.options
         h = self.quadrature.spacing
@@ -852,7 +853,8 @@ class Registration:
         log.info("warped rest field: objective %s: kept the %s result",
                  ", ".join(f"{k} {e:.4g}" for k, e in compared.items()), kept)
         # hops through the field's landscape from the kept result (warped_hops): the field's
-        # minimum near it, refined on Eq. (3), kept when its objective is lower
+        # minimum near it, refined on Eq. (3), kept when its objective is below warped_hop_ratio
+        # times the kept one's
         before_hops, current, objective = kept, forward if kept == forward.label else best, compared[kept]
         hops, hop_fields = [], []
         for i in range(o.warped_hops if np.isfinite(objective) else 0):
@@ -860,7 +862,7 @@ class Registration:
             hop_fields.append(moved)
             run = self._run_starts([(f"{WARPED_PREFIX}hop {i + 1}", moved.T, options)], progress)[0]
             runs.append(run)
-            accepted = bool(run.energy < objective)
+            accepted = bool(run.energy < o.warped_hop_ratio * objective)
             hops.append({"start": run.label, "from": current.label, "field_energy": float(moved.energy),
                          "objective": float(run.energy), "accepted": accepted})
             log.info("%s from the %s result: field energy %.4g, objective %.4g against %.4g: %s", run.label,

@@ -232,13 +232,18 @@ def test_field_starts_far_above_the_lowest_stop_early():
         assert mm.register(source, target, options.replace(**change)).metrics["warped_pass"]["pruned"] == {}
 
 
+def objective_before(w):
+    """The objective of the warped pass's choice before its hops."""
+    return w["objectives"][w["kept_before_hops"]]
+
+
 def test_hops_through_the_field_keep_only_a_lower_objective():
     """``warped_hops``: from the pass's kept result, the field minimized with all modes and
     refined on Eq. (3); a hop is kept only at a lower objective, the next starts from it, and
     the first not kept ends them. The pass before the hops is the pass without them."""
     source, target = _bent_pair()
     options = mm.RegistrationOptions(grid=24, modes=6)
-    assert options.warped_hops == 1  # the default
+    assert options.warped_hops == 1 and options.warped_hop_ratio == 0.99  # the defaults
     none = mm.register(source, target, options.replace(warped_hops=0))
     reg = mm.Registration(source, target, options.replace(warped_hops=3))
     r = reg.run(ground_truth=target[0])
@@ -252,7 +257,7 @@ def test_hops_through_the_field_keep_only_a_lower_objective():
     kept, source_of = w["kept_before_hops"], w["kept_before_hops"]
     for i, h in enumerate(hops):
         assert h["start"] == f"warped: hop {i + 1}" and h["from"] == source_of
-        assert h["accepted"] == (h["objective"] < objective)
+        assert h["accepted"] == (h["objective"] < options.warped_hop_ratio * objective)
         if not h["accepted"]:
             assert i == len(hops) - 1  # the first hop not kept is the last
             break
@@ -262,6 +267,9 @@ def test_hops_through_the_field_keep_only_a_lower_objective():
     # the kept result is the one of that objective, no higher than without hops
     assert reg._objective(reg.normalization.apply(r.vertices)) == pytest.approx(objective, rel=1e-9)
     assert objective <= w0["objectives"][w0["kept"]] * (1 + 1e-9)
+    # a ratio of 1: kept at any lower objective (the bookkeeping as above, one hop)
+    anyway = mm.register(source, target, options.replace(warped_hop_ratio=1.0)).metrics["warped_pass"]
+    assert anyway["hops"][0]["accepted"] == (anyway["hops"][0]["objective"] < objective_before(anyway))
     # the hops' refinements are runs of the registration, counted; their field steps too
     starts = r.metrics["starts"]
     assert [s["start"] for s in starts[-len(hops):]] == [h["start"] for h in hops]
@@ -319,6 +327,8 @@ def test_warped_pass_options_are_checked_and_on_the_command_line():
         mm.RegistrationOptions(warped_hops=-1)
     with pytest.raises(mm.OptionError, match="warped_hop_iterations"):
         mm.RegistrationOptions(warped_hop_iterations=0)
+    with pytest.raises(mm.OptionError, match="warped_hop_ratio"):
+        mm.RegistrationOptions(warped_hop_ratio=0.0)
     for flags, on in (([], True), (["--no-warped-pass"], False), (["--warped-pass"], True),
                       (["--optimizer", "paper"], False), (["--optimizer", "paper", "--warped-pass"], True)):
         args = build_parser().parse_args(["register", "a.obj", "b.obj", "-o", "out", *flags])
@@ -331,7 +341,8 @@ def test_warped_pass_options_are_checked_and_on_the_command_line():
                           (["--warped-prune-modes", "0"], {"warped_prune_modes": 0}),
                           (["--warped-prune-ratio", "3"], {"warped_prune_ratio": 3.0}),
                           (["--warped-hops", "0"], {"warped_hops": 0}),
-                          (["--warped-hop-iterations", "5"], {"warped_hop_iterations": 5})):
+                          (["--warped-hop-iterations", "5"], {"warped_hop_iterations": 5}),
+                          (["--warped-hop-ratio", "1"], {"warped_hop_ratio": 1.0})):
         args = build_parser().parse_args(["register", "a.obj", "b.obj", "-o", "out", *flags])
         assert _options_from_args(args) == mm.RegistrationOptions().replace(**change), flags
 
