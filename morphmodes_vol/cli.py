@@ -150,7 +150,8 @@ def _add_common(p: argparse.ArgumentParser, default_grid: int, default_modes: in
     p.add_argument("--warped-hops", type=int, default=None,
                    help="after the warped pass, at most this many hops from the kept result: the "
                         "warped field minimized with all modes, refined on the SDF energy, kept when "
-                        f"its objective is lower (0: none; default {d.warped_hops}; docs/method.md)")
+                        "its objective is below --warped-hop-ratio times the result it left (0: none; "
+                        f"default {d.warped_hops}; docs/method.md)")
     p.add_argument("--warped-hop-iterations", type=int, default=None,
                    help=f"the field's steps in a hop (default {d.warped_hop_iterations})")
     p.add_argument("--warped-hop-ratio", type=float, default=None,

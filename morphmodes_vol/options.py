@@ -293,9 +293,9 @@ class RegistrationOptions:
         Levenberg-Marquardt steps), then refined on Eq. (3) as a field result is
         (``warped_polish_iterations``), kept when its objective is below
         ``warped_hop_ratio`` times the kept result's, the next hop from there; the hops end
-        at the first not kept. The two
-        energies have different local minima, so a result stuck in one's can leave it
-        through the other's (docs/method.md, "Hops through the field"). 0: none.
+        at the first not kept. The two energies have different local minima, so a result
+        stuck in one's can leave it through the other's: 0.0279 -> 0.0256 on the accuracy
+        study, 2 or 3 hops the same (docs/method.md, "Hops through the field"). 0: none.
     warped_hop_iterations : int
         The field's Levenberg-Marquardt steps of a hop (at least 1).
     warped_hop_ratio : float
