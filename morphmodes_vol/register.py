@@ -855,7 +855,8 @@ class Registration:
         # hops through the field's landscape from the kept result (warped_hops): the field's
         # minimum near it, refined on Eq. (3), kept when its objective is below warped_hop_ratio
         # times the kept one's
-        before_hops, current, objective = kept, forward if kept == forward.label else best, compared[kept]
+        before_hops, objective = kept, compared[kept]
+        current = forward if kept == forward.label else best  # the result of label kept
         hops, hop_fields = [], []
         for i in range(o.warped_hops if np.isfinite(objective) else 0):
             moved = field.minimize(current.result.T, o.modes, o.warped_hop_iterations, first_mode=o.modes)
@@ -869,7 +870,8 @@ class Registration:
                      current.label, moved.energy, run.energy, objective, "kept" if accepted else "not kept")
             if not accepted:
                 break
-            kept, current, objective = run.label, run, run.energy
+            current, objective = run, run.energy
+        kept = current.label
         report = {"kept": kept, "kept_before_hops": before_hops, "objectives": compared,
                   "field_objectives": objectives,
                   "field_energies": energies, "refined_start": best.label[len(WARPED_PREFIX):],

@@ -4,6 +4,7 @@ of its Gauss-Newton model, recovery of known motions, the choice by the objectiv
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 import morphmodes_vol as mm
 from morphmodes_vol.cli import _options_from_args, build_parser
@@ -232,15 +233,15 @@ def test_field_starts_far_above_the_lowest_stop_early():
         assert mm.register(source, target, options.replace(**change)).metrics["warped_pass"]["pruned"] == {}
 
 
-def objective_before(w):
+def _objective_before(w):
     """The objective of the warped pass's choice before its hops."""
     return w["objectives"][w["kept_before_hops"]]
 
 
 def test_hops_through_the_field_keep_only_a_lower_objective():
     """``warped_hops``: from the pass's kept result, the field minimized with all modes and
-    refined on Eq. (3); a hop is kept only at a lower objective, the next starts from it, and
-    the first not kept ends them. The pass before the hops is the pass without them."""
+    refined on Eq. (3); a hop is kept only below ``warped_hop_ratio`` times the objective of the
+    result it left, the next starts from it, and the first not kept ends them. The pass before the hops is the pass without them."""
     source, target = _bent_pair()
     options = mm.RegistrationOptions(grid=24, modes=6)
     assert options.warped_hops == 1 and options.warped_hop_ratio == 0.99  # the defaults
@@ -253,15 +254,14 @@ def test_hops_through_the_field_keep_only_a_lower_objective():
     np.testing.assert_allclose(list(w["objectives"].values()), list(w0["objectives"].values()), rtol=1e-9)
     hops = w["hops"]
     assert 1 <= len(hops) <= 3
-    objective = w["objectives"][w["kept_before_hops"]]
-    kept, source_of = w["kept_before_hops"], w["kept_before_hops"]
+    kept, objective = w["kept_before_hops"], _objective_before(w)
     for i, h in enumerate(hops):
-        assert h["start"] == f"warped: hop {i + 1}" and h["from"] == source_of
+        assert h["start"] == f"warped: hop {i + 1}" and h["from"] == kept
         assert h["accepted"] == (h["objective"] < options.warped_hop_ratio * objective)
         if not h["accepted"]:
             assert i == len(hops) - 1  # the first hop not kept is the last
             break
-        kept, source_of, objective = h["start"], h["start"], h["objective"]
+        kept, objective = h["start"], h["objective"]
     assert len(hops) == 3 or not hops[-1]["accepted"]
     assert w["kept"] == kept == r.metrics["start"]
     # the kept result is the one of that objective, no higher than without hops
@@ -269,7 +269,7 @@ def test_hops_through_the_field_keep_only_a_lower_objective():
     assert objective <= w0["objectives"][w0["kept"]] * (1 + 1e-9)
     # a ratio of 1: kept at any lower objective (the bookkeeping as above, one hop)
     anyway = mm.register(source, target, options.replace(warped_hop_ratio=1.0)).metrics["warped_pass"]
-    assert anyway["hops"][0]["accepted"] == (anyway["hops"][0]["objective"] < objective_before(anyway))
+    assert anyway["hops"][0]["accepted"] == (anyway["hops"][0]["objective"] < _objective_before(anyway))
     # the hops' refinements are runs of the registration, counted; their field steps too
     starts = r.metrics["starts"]
     assert [s["start"] for s in starts[-len(hops):]] == [h["start"] for h in hops]
@@ -371,11 +371,10 @@ def test_a_hop_leaves_the_basin_the_pass_keeps(data_dir):
     src = mm.as_mesh(data_dir / "lion-poses" / "lion-reference.obj")
     tgt = data_dir / "lion-poses" / "lion-05.obj"
     V = np.asarray(src[0])
-    a = np.radians(-20.0)
-    turn = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    turn = Rotation.from_euler("z", -20.0, degrees=True).as_matrix()
     c = 0.5 * (V.min(0) + V.max(0))
     r = mm.register(((V - c) @ turn.T + c, src[1]), tgt, ground_truth=tgt)
     w = r.metrics["warped_pass"]
     assert w["hops"][0]["accepted"] and w["kept"] == "warped: hop 1"
-    assert w["hops"][0]["objective"] < 0.8 * w["objectives"][w["kept_before_hops"]]
+    assert w["hops"][0]["objective"] < 0.8 * _objective_before(w)
     assert r.metrics["ground_truth_error"] < 0.02
