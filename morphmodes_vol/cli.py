@@ -66,7 +66,7 @@ _SAME_NAMED_OPTIONS = ("target_grid", "max_iterations", "preconditioner", "quadr
                        "target_sign", "landmark_weight", "isometry_weight", "coarse_starts", "warped_pass",
                        "warped_candidates", "warped_choice", "warped_refine", "warped_prune_modes",
                        "warped_prune_ratio", "warped_hops", "warped_hop_iterations",
-                       "warped_hop_ratio")
+                       "warped_hop_ratio", "warped_descriptors", "warped_descriptor_weight")
 
 
 def _options_from_args(args) -> RegistrationOptions:
@@ -157,6 +157,12 @@ def _add_common(p: argparse.ArgumentParser, default_grid: int, default_modes: in
     p.add_argument("--warped-hop-ratio", type=float, default=None,
                    help="a hop is kept only when its objective is below this times the result it "
                         f"left (default {d.warped_hop_ratio})")
+    p.add_argument("--warped-descriptors", action=argparse.BooleanOptionalAction, default=None,
+                   help="the warped pass also minimizes the field with heat kernel signatures, so "
+                        "that parts land on parts of their own shape (needs a target mesh; default "
+                        f"{'on' if d.warped_descriptors else 'off'}; docs/method.md)")
+    p.add_argument("--warped-descriptor-weight", type=float, default=None,
+                   help=f"the descriptors' weight in that field (default {d.warped_descriptor_weight})")
     p.add_argument("--two-way", action="store_true",
                    help="also register the target onto the source, start two runs from the "
                         "correspondences it implies and keep the lowest objective: about twice "

@@ -305,6 +305,16 @@ class RegistrationOptions:
         objective doubled the ground-truth error. 0.99: on the accuracy study the hops kept
         above 0.99 moved no error by more than 0.0008 (docs/method.md, "Hops through the
         field").
+    warped_descriptors : bool
+        The warped pass also minimizes the field with descriptor channels (the heat kernel
+        signatures of both meshes, :mod:`morphmodes_vol.descriptors`: a part must land on the
+        part of the target of its own shape) from every start, with the same early stops,
+        refines its lowest result on Eq. (3) and lets it compete by the objective like the
+        other field results (docs/method.md, "Descriptors in the warped field"). Needs a
+        target mesh (skipped for an SDF target).
+    warped_descriptor_weight : float
+        ``mu``: the weight of the descriptors' mean squared residual (log heat kernel
+        signature, unitless) against the SDF's squared residual (non-negative).
     two_way : bool
         Also register the target onto the source (these options, one way), read the
         correspondences off that reverse registration (:mod:`morphmodes_vol.two_way`), fit the
@@ -385,6 +395,8 @@ class RegistrationOptions:
     warped_hops: int = 1
     warped_hop_iterations: int = 20
     warped_hop_ratio: float = 0.99
+    warped_descriptors: bool = True
+    warped_descriptor_weight: float = 0.004
     two_way: bool = False
     two_way_iterations: int = 30
     two_way_grid: int | None = None
@@ -487,6 +499,9 @@ class RegistrationOptions:
              "a positive integer")
         need(_is_real(self.warped_hop_ratio) and 0 < self.warped_hop_ratio <= 1, "warped_hop_ratio",
              "a float in (0, 1]")
+        need(isinstance(self.warped_descriptors, bool), "warped_descriptors", "True or False")
+        need(_is_real(self.warped_descriptor_weight) and self.warped_descriptor_weight >= 0,
+             "warped_descriptor_weight", "a non-negative float")
         need(isinstance(self.two_way, bool), "two_way", "True or False")
         need(_is_int(self.two_way_iterations) and self.two_way_iterations >= 1, "two_way_iterations",
              "a positive integer")

@@ -15,10 +15,12 @@ from typing import Callable
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.sparse.linalg import ArpackError
 
+from .descriptors import heat_kernel_signature, surface_descriptor_grid
 from .eigenbasis import LBSBasis, mesh_skinning_weights, to_paper_z
 from .energy import SDFEnergy
-from .errors import OptionError
+from .errors import MeshValidationError, OptionError
 from .initialize import IcpAlignment, InitialAlignment, align, icp_align
 from .isometry import IsometryEnergy
 from .landmarks import LandmarkEnergy, Landmarks, as_landmarks, landmark_rms
@@ -30,6 +32,7 @@ from .quadrature import BandEnergy, CoarseToFine, every_other_node
 from .repair import sdf_faces
 from .optimize import AdaptiveRun, OptimizationHistory, ProgressEvent, single_threaded_blas
 from .sdf import Grid, TargetSDF, build_target_sdf, closest_points, is_target_sdf_path, load_target_sdf
+from .sdf.grid import trilinear_sample
 from .stages import SourceEigenbasis, TargetField
 from .two_way import reverse_correspondences, closest_point_rows
 from .warped_field import WarpedRestField, ZeroEnergy
@@ -857,20 +860,37 @@ class Registration:
         # times the kept one's
         before_hops, objective = kept, compared[kept]
         current = forward if kept == forward.label else best  # the result of label kept
-        hops, hop_fields = [], []
-        for i in range(o.warped_hops if np.isfinite(objective) else 0):
-            moved = field.minimize(current.result.T, o.modes, o.warped_hop_iterations, first_mode=o.modes)
-            hop_fields.append(moved)
-            run = self._run_starts([(f"{WARPED_PREFIX}hop {i + 1}", moved.T, options)], progress)[0]
-            runs.append(run)
-            accepted = bool(run.energy < o.warped_hop_ratio * objective)
-            hops.append({"start": run.label, "from": current.label, "field_energy": float(moved.energy),
-                         "objective": float(run.energy), "accepted": accepted})
-            log.info("%s from the %s result: field energy %.4g, objective %.4g against %.4g: %s", run.label,
-                     current.label, moved.energy, run.energy, objective, "kept" if accepted else "not kept")
-            if not accepted:
-                break
-            current, objective = run, run.energy
+        hops, hop_fields, descriptors, descriptor_seconds = [], [], {}, 0.0
+        chains = [("hop", field, o.warped_hops)]
+        if o.warped_descriptors and self.Y is None:
+            log.info("warped_descriptors: a target given as an SDF has no surface for descriptors")
+            descriptors = {"skipped": "the target is an SDF, not a mesh"}
+        elif o.warped_descriptors and np.isfinite(objective):
+            # then one hop through the field with descriptors (docs/method.md, "Descriptors
+            # in the warped field")
+            try:
+                dfield, grid_nodes, descriptor_seconds = self._descriptor_field(field)
+            except (MeshValidationError, ArpackError, np.linalg.LinAlgError) as exc:
+                log.warning("warped_descriptors: no heat kernel signature (%s); no descriptor hop", exc)
+                descriptors = {"skipped": f"no heat kernel signature: {exc}"}
+            else:
+                descriptors = {"channels": int(dfield.d0.shape[1]), "grid_nodes": grid_nodes}
+                chains.append(("descriptor hop", dfield, 1))
+        for name, hop_field, count in chains:
+            for i in range(count if np.isfinite(objective) else 0):
+                moved = hop_field.minimize(current.result.T, o.modes, o.warped_hop_iterations, first_mode=o.modes)
+                hop_fields.append(moved)
+                run = self._run_starts([(f"{WARPED_PREFIX}{name} {i + 1}", moved.T, options)], progress)[0]
+                runs.append(run)
+                accepted = bool(run.energy < o.warped_hop_ratio * objective)
+                hops.append({"start": run.label, "from": current.label, "field_energy": float(moved.energy),
+                             "objective": float(run.energy), "accepted": accepted,
+                             "field": "descriptors" if hop_field.d0 is not None else "plain"})
+                log.info("%s from the %s result: field energy %.4g, objective %.4g against %.4g: %s", run.label,
+                         current.label, moved.energy, run.energy, objective, "kept" if accepted else "not kept")
+                if not accepted:
+                    break
+                current, objective = run, run.energy
         kept = current.label
         report = {"kept": kept, "kept_before_hops": before_hops, "objectives": compared,
                   "field_objectives": objectives,
@@ -878,11 +898,29 @@ class Registration:
                   "refined_starts": chosen, "skipped_candidates": skipped,
                   "pruned": pruned, "prune_modes": K if staged else None,
                   "field_energies_at_prune": {label: r.energy for label, r in first.items()} if staged else {},
-                  "field_nodes": int(len(field.points)), "hops": hops}
+                  "field_nodes": int(len(field.points)), "hops": hops, "descriptors": descriptors}
         spent = [*results.values(), *(first[label] for label in pruned), *hop_fields]  # every field run, whole
         report["field_evaluations"] = int(sum(r.evaluations for r in spent))
-        seconds = float(field.build_seconds + sum(r.seconds for r in spent))
+        seconds = float(field.build_seconds + sum(r.seconds for r in spent) + descriptor_seconds)
         return field, runs, report, seconds
+
+    def _descriptor_field(self, field: WarpedRestField) -> tuple[WarpedRestField, int, float]:
+        """``field`` with the descriptor channels (``warped_descriptors``; docs/method.md,
+        "Descriptors in the warped field"): the heat kernel signatures of the source and the
+        target mesh, the target's on a grid of half the quadrature's nodes over its box.
+        Returns the field, that grid's node count and the seconds spent."""
+        o = self.options
+        t = time.perf_counter()
+        source = heat_kernel_signature(self.X0, self.source_sdf_faces, seed=o.seed)
+        target = heat_kernel_signature(self.Y, self.target_sdf_faces, seed=o.seed)
+        grid = Grid.covering(self.quadrature.origin, self.quadrature.upper, max(max(self.quadrature.shape) // 2, 2))
+        values = surface_descriptor_grid(self.Y, self.target_sdf_faces, target, grid)
+        dfield = field.with_descriptors((source, lambda P: trilinear_sample(values, grid, P)),
+                                        o.warped_descriptor_weight)
+        seconds = time.perf_counter() - t
+        log.info("descriptor field: heat kernel signatures and the target's grid of %d nodes (%.2f s)",
+                 grid.size, seconds)
+        return dfield, int(grid.size), seconds
 
     def _landmark_metrics(self, vertices: np.ndarray, target_diagonal: float) -> dict:
         """RMS landmark distance of the rest pose and of the registered ``vertices (n, 3)``,

@@ -21,6 +21,15 @@ with the distance from the surface (measured on lion-01 at the truth's 20-mode f
 the term that is lost is the part of Eq. (2) that asks the target's surface to be covered.
 Terms on the vertices (the isometry prior, landmarks) are added as they are.
 
+With ``descriptors`` (docs/method.md, "Descriptors in the warped field"), each node also
+compares intrinsic descriptors (:mod:`morphmodes_vol.descriptors`): ``d0(p)``, the rest
+source's at ``p``'s closest surface point, with the target's ``d(phi_T(p))`` (each node of a
+grid takes the value at its closest target surface point), over ``c`` channels,
+
+    E_w(T) += h^3 * (mu / c) * sum_p ||d0(p) - d(phi_T(p))||^2,
+
+so that a part lands on the part of the target that has its shape, not only on some surface.
+
 :class:`WarpedRestField` builds the field and minimizes ``E_w`` over the subspace, one mode
 at a time as Algorithm 1 does, by Levenberg-Marquardt; :meth:`Registration.run` runs it
 from every start and refines the best result on Eq. (3) itself (``warped_pass``;
@@ -29,6 +38,7 @@ docs/method.md, "The warped rest field").
 
 from __future__ import annotations
 
+import copy
 import logging
 import time
 from dataclasses import dataclass
@@ -122,6 +132,12 @@ class WarpedRestField:
     sign : {"raycast", "winding"}
     samples : int
         Occupancy rays per node (``sign="raycast"``).
+    descriptors : (source, sample) or None
+        Descriptor channels (module docstring): ``source (n, c)`` at the rest vertices, and
+        ``sample``: points ``(N, 3)`` -> the target's ``(N, c)`` (trilinear in a grid of
+        :func:`~morphmodes_vol.descriptors.surface_descriptor_grid`).
+    descriptor_weight : float
+        ``mu``, the weight of the channels' mean squared residual against the SDF's.
 
     Examples
     --------
@@ -136,7 +152,8 @@ class WarpedRestField:
     """
 
     def __init__(self, basis: LBSBasis, faces: np.ndarray, sample_target, spacing: float,
-                 band: float, terms=None, sign: str = "raycast", samples: int = 1):
+                 band: float, terms=None, sign: str = "raycast", samples: int = 1,
+                 descriptors=None, descriptor_weight: float = 0.0):
         if not (spacing > 0 and band > 0):
             raise ValueError(f"spacing and band must be positive, got {spacing} and {band}")
         t = time.perf_counter()
@@ -151,6 +168,11 @@ class WarpedRestField:
                              "the spacing is too coarse for the mesh")
         corner_weights = basis.W[np.asarray(faces)[q.closest.faces[near]]]
         W = np.einsum("pc,pcm->pm", q.closest.barycentrics[near], corner_weights)
+        # each node's closest rest surface point: its triangle's corners and barycentrics
+        self._corners = np.asarray(faces)[q.closest.faces[near]]
+        self._barycentrics = q.closest.barycentrics[near]
+        self.d0 = self.sample_descriptors = None
+        self._channel_weight = 0.0  # mu / c
         self.points = P[near]
         self.f0 = q.value[near]
         self.cell_volume = grid.cell_volume
@@ -161,6 +183,8 @@ class WarpedRestField:
         self._step = 0.25 * spacing  # central differences of g inside a trilinear cell
         self.terms = terms
         self.evaluations = 0
+        if descriptors is not None:
+            self._set_descriptors(descriptors, descriptor_weight)
         self.build_seconds = time.perf_counter() - t
         log.info("warped rest field: %d band nodes of %d (%.2f s)", len(self.points),
                  self.nodes_queried, self.build_seconds)
@@ -176,6 +200,36 @@ class WarpedRestField:
             G[:, a] = (self.sample_target(Y + e) - self.sample_target(Y - e)) / (2 * self._step)
         return g, G
 
+    def _set_descriptors(self, descriptors, weight: float) -> None:
+        D = np.asarray(descriptors[0], dtype=np.float64)
+        if D.ndim != 2 or D.shape[0] != self.basis.X0.shape[0]:
+            raise ValueError(f"source descriptors must be (n, c) with n = {self.basis.X0.shape[0]} "
+                             f"vertices, got {D.shape}")
+        if not weight >= 0:
+            raise ValueError(f"descriptor_weight must be non-negative, got {weight}")
+        self.d0 = np.einsum("pc,pcj->pj", self._barycentrics, D[self._corners])
+        self.sample_descriptors = descriptors[1]
+        self._channel_weight = float(weight) / D.shape[1]
+
+    def with_descriptors(self, descriptors, descriptor_weight: float) -> "WarpedRestField":
+        """This field with descriptor channels (``descriptors`` and ``descriptor_weight`` as
+        in the constructor): the same band nodes, no new query; its own evaluation count."""
+        out = copy.copy(self)
+        out.evaluations = 0
+        out._set_descriptors(descriptors, descriptor_weight)
+        return out
+
+    def _descriptors(self, Y: np.ndarray, gradient: bool):
+        """The descriptor residuals ``d0 - d(Y)`` ``(N, c)`` and, with ``gradient``, the
+        target descriptors' gradients ``(N, c, 3)`` (central differences as for ``g``), all
+        from one stacked sample."""
+        if not gradient:
+            return self.d0 - self.sample_descriptors(Y), None
+        offsets = np.vstack([np.zeros(3), np.eye(3) * self._step, -np.eye(3) * self._step])  # (7, 3)
+        d = self.sample_descriptors((Y[None] + offsets[:, None]).reshape(-1, 3)).reshape(7, len(Y), -1)
+        Gd = ((d[1:4] - d[4:7]) / (2 * self._step)).transpose(1, 2, 0)
+        return self.d0 - d[0], Gd
+
     def evaluate(self, T: np.ndarray, m: int | None = None):
         """``E_w`` plus the vertex terms at the blocks ``T (k, 3, 4)``; with ``m``, also the
         Gauss-Newton normal equations in the first ``m`` modes (``NormalEquations``, ``g``
@@ -190,6 +244,9 @@ class WarpedRestField:
         g, G = self._target(Y, m is not None)
         r = self.f0 - g
         E = self.cell_volume * float(r @ r)
+        if self.d0 is not None:
+            rd, Gd = self._descriptors(Y, m is not None)
+            E += self.cell_volume * self._channel_weight * float(np.sum(rd * rd))
         X = self.basis.deform(T) if self.terms is not None else None
         ev = self.terms.evaluate(X) if self.terms is not None else None
         if ev is not None:
@@ -197,11 +254,19 @@ class WarpedRestField:
         if m is None:
             return E
         C = self.point_basis.skinning_matrix(m)
-        blocks = {(a, b): C.T @ (C * (self.cell_volume * G[:, a] * G[:, b])[:, None])
+        v = self.cell_volume
+        if self.d0 is None:
+            GG = {(a, b): v * G[:, a] * G[:, b] for a in range(3) for b in range(a, 3)}
+            RG = v * r[:, None] * G
+        else:  # the channels' rows, weighted, summed per node before the products with C
+            mu = self._channel_weight
+            GG = {(a, b): v * (G[:, a] * G[:, b] + mu * np.einsum("pj,pj->p", Gd[:, :, a], Gd[:, :, b]))
                   for a in range(3) for b in range(a, 3)}
+            RG = v * (r[:, None] * G + mu * np.einsum("pj,pja->pa", rd, Gd))
+        blocks = {ab: C.T @ (C * w[:, None]) for ab, w in GG.items()}
         A = _assemble(blocks, m)
         # J^T W r with J = -G (x) C: (4m, 3) in (mode, column) x coordinate, to the T layout
-        half_gradient = -(C.T @ (self.cell_volume * r[:, None] * G)).reshape(m, 4, 3).transpose(0, 2, 1).ravel()
+        half_gradient = -(C.T @ RG).reshape(m, 4, 3).transpose(0, 2, 1).ravel()
         if ev is not None:
             half_gradient = half_gradient + 0.5 * self.basis.pullback(ev.gradient, m).ravel()
             # every term's Gauss-Newton block, the vertex-block ones included (not folded)
