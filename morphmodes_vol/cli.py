@@ -158,11 +158,12 @@ def _add_common(p: argparse.ArgumentParser, default_grid: int, default_modes: in
                    help="a hop is kept only when its objective is below this times the result it "
                         f"left (default {d.warped_hop_ratio})")
     p.add_argument("--warped-descriptors", action=argparse.BooleanOptionalAction, default=None,
-                   help="the warped pass also minimizes the field with heat kernel signatures, so "
-                        "that parts land on parts of their own shape (needs a target mesh; default "
+                   help="after the hops, one more hop through the warped field with the heat kernel "
+                        "signatures of both meshes, so that parts land on parts of their own shape, "
+                        "kept as a hop is (needs a target mesh; default "
                         f"{'on' if d.warped_descriptors else 'off'}; docs/method.md)")
     p.add_argument("--warped-descriptor-weight", type=float, default=None,
-                   help=f"the descriptors' weight in that field (default {d.warped_descriptor_weight})")
+                   help=f"the signatures' weight in that hop's field (default {d.warped_descriptor_weight})")
     p.add_argument("--two-way", action="store_true",
                    help="also register the target onto the source, start two runs from the "
                         "correspondences it implies and keep the lowest objective: about twice "
