@@ -166,11 +166,10 @@ class WarpedRestField:
         if not near.any():
             raise ValueError("no grid node lies within the band of the rest surface; "
                              "the spacing is too coarse for the mesh")
-        corner_weights = basis.W[np.asarray(faces)[q.closest.faces[near]]]
-        W = np.einsum("pc,pcm->pm", q.closest.barycentrics[near], corner_weights)
         # each node's closest rest surface point: its triangle's corners and barycentrics
         self._corners = np.asarray(faces)[q.closest.faces[near]]
         self._barycentrics = q.closest.barycentrics[near]
+        W = self._at_closest(basis.W)
         self.d0 = self.sample_descriptors = None
         self._channel_weight = 0.0  # mu / c
         self.points = P[near]
@@ -189,16 +188,24 @@ class WarpedRestField:
         log.info("warped rest field: %d band nodes of %d (%.2f s)", len(self.points),
                  self.nodes_queried, self.build_seconds)
 
-    def _target(self, Y: np.ndarray, gradient: bool):
-        g = self.sample_target(Y)
+    def _at_closest(self, values: np.ndarray) -> np.ndarray:
+        """Per-vertex ``values (n, k)`` of the rest mesh at each node's closest surface point
+        (the barycentric mix of its triangle's corners), ``(N, k)``."""
+        return np.einsum("pc,pcj->pj", self._barycentrics, values[self._corners])
+
+    def _sampled(self, sample, Y: np.ndarray, gradient: bool):
+        """``sample(Y)`` (``(N,)`` or ``(N, c)``) and, with ``gradient``, its gradient
+        (``(N, 3)`` or ``(N, c, 3)``) by central differences a step apart inside a trilinear
+        cell, from one call on the 7 stacked point sets."""
         if not gradient:
-            return g, None
-        G = np.empty_like(Y)
-        for a in range(3):
-            e = np.zeros(3)
-            e[a] = self._step
-            G[:, a] = (self.sample_target(Y + e) - self.sample_target(Y - e)) / (2 * self._step)
-        return g, G
+            return sample(Y), None
+        offsets = np.vstack([np.zeros(3), np.eye(3) * self._step, -np.eye(3) * self._step])  # (7, 3)
+        values = np.asarray(sample((Y[None] + offsets[:, None]).reshape(-1, 3)))
+        s = values.reshape(7, len(Y), -1)
+        G = ((s[1:4] - s[4:7]) / (2 * self._step)).transpose(1, 2, 0)  # (N, c, 3)
+        if values.ndim == 1:  # one channel, as given
+            return s[0, :, 0], G[:, 0]
+        return s[0], G
 
     def _set_descriptors(self, descriptors, weight: float) -> None:
         D = np.asarray(descriptors[0], dtype=np.float64)
@@ -207,7 +214,7 @@ class WarpedRestField:
                              f"vertices, got {D.shape}")
         if not weight >= 0:
             raise ValueError(f"descriptor_weight must be non-negative, got {weight}")
-        self.d0 = np.einsum("pc,pcj->pj", self._barycentrics, D[self._corners])
+        self.d0 = self._at_closest(D)
         self.sample_descriptors = descriptors[1]
         self._channel_weight = float(weight) / D.shape[1]
 
@@ -218,17 +225,6 @@ class WarpedRestField:
         out.evaluations = 0
         out._set_descriptors(descriptors, descriptor_weight)
         return out
-
-    def _descriptors(self, Y: np.ndarray, gradient: bool):
-        """The descriptor residuals ``d0 - d(Y)`` ``(N, c)`` and, with ``gradient``, the
-        target descriptors' gradients ``(N, c, 3)`` (central differences as for ``g``), all
-        from one stacked sample."""
-        if not gradient:
-            return self.d0 - self.sample_descriptors(Y), None
-        offsets = np.vstack([np.zeros(3), np.eye(3) * self._step, -np.eye(3) * self._step])  # (7, 3)
-        d = self.sample_descriptors((Y[None] + offsets[:, None]).reshape(-1, 3)).reshape(7, len(Y), -1)
-        Gd = ((d[1:4] - d[4:7]) / (2 * self._step)).transpose(1, 2, 0)
-        return self.d0 - d[0], Gd
 
     def evaluate(self, T: np.ndarray, m: int | None = None):
         """``E_w`` plus the vertex terms at the blocks ``T (k, 3, 4)``; with ``m``, also the
@@ -241,11 +237,12 @@ class WarpedRestField:
         """
         self.evaluations += 1
         Y = self.point_basis.deform(T)
-        g, G = self._target(Y, m is not None)
+        g, G = self._sampled(self.sample_target, Y, m is not None)
         r = self.f0 - g
         E = self.cell_volume * float(r @ r)
         if self.d0 is not None:
-            rd, Gd = self._descriptors(Y, m is not None)
+            d, Gd = self._sampled(self.sample_descriptors, Y, m is not None)
+            rd = self.d0 - d
             E += self.cell_volume * self._channel_weight * float(np.sum(rd * rd))
         X = self.basis.deform(T) if self.terms is not None else None
         ev = self.terms.evaluate(X) if self.terms is not None else None
