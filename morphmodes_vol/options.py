@@ -183,6 +183,11 @@ class RegistrationOptions:
         ``True`` (default): on the accuracy study's 30 pairs the mean error fell from 0.0525
         to 0.049 and no pair is worse than RICP+NRICP; ``False``: one pass on the grid, as
         grids under 48 nodes always run.
+    fine_pass : bool
+        With ``coarse_starts``: after the coarse pass, run Algorithm 1 again from the start
+        kept there on the grid itself (``True``, default). ``False`` keeps the coarse pass's
+        result, judged on the grid, and leaves the fine grid to the warped pass's refinements
+        (docs/method.md, "Initialization and two starts", item 10).
     select_energy_factor : float
         See ``init_keep_rest``; at least 1 (``1``: the lowest objective). With the isometry
         prior, every factor from 1.25 to 10 kept the same start on the 18 poses
@@ -381,6 +386,7 @@ class RegistrationOptions:
     start_choice_modes: int | None = 20
     init_lm_iterations_per_stage: int = 3
     coarse_starts: bool = True
+    fine_pass: bool = True
     isometry_weight: float = 3e-4
     isometry_tolerance: float = 0.2
     warped_pass: bool = True
@@ -480,6 +486,7 @@ class RegistrationOptions:
         need(isinstance(self.init_keep_rest, bool), "init_keep_rest", "True or False")
         need(isinstance(self.icp_start, bool), "icp_start", "True or False")
         need(isinstance(self.coarse_starts, bool), "coarse_starts", "True or False")
+        need(isinstance(self.fine_pass, bool), "fine_pass", "True or False")
         need(isinstance(self.warped_pass, bool), "warped_pass", "True or False")
         need(self.warped_band_cells > 0, "warped_band_cells", "a positive float")
         need(_is_int(self.warped_iterations_per_stage) and self.warped_iterations_per_stage >= 1,

@@ -592,8 +592,11 @@ class Registration:
             coarse = [(label + COARSE_SUFFIX, start, options) for label, start, options in starts]
             runs = self._run_starts(coarse, progress, self.coarse_energy, self._coarse_objective)
             kept = _select_start([r for r in runs if r.stopped is None], factor)
-            runs += self._run_starts([starts[runs.index(kept)]], progress)  # runs keep the starts' order
-            chosen = _select_start([kept, runs[-1]], factor)
+            if self.options.fine_pass:
+                runs += self._run_starts([starts[runs.index(kept)]], progress)  # runs keep the starts' order
+                chosen = _select_start([kept, runs[-1]], factor)
+            else:
+                chosen = kept
         else:
             # a lone run is not compared with anything (unless two_way compares it with the
             # run from the reverse registration): no objective on the full grid

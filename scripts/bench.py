@@ -193,8 +193,9 @@ def main() -> int:
     ap.add_argument("--set", nargs="*", default=[], metavar="OPTION=VALUE",
                     help="override options of every run of ours, e.g. --set grid=48")
     ap.add_argument("--methods", nargs="*", default=["default", "lm", "paper", "nricp"],
-                    choices=["default", "no-descriptors", "no-warped", "two-way", "lm", "paper", "nricp"],
-                    help="default: RegistrationOptions(); no-descriptors: --no-warped-descriptors, "
+                    choices=["default", "no-fine-pass", "no-descriptors", "no-warped", "two-way", "lm", "paper", "nricp"],
+                    help="default: RegistrationOptions(); no-fine-pass: --no-fine-pass (the fast "
+                         "setting); no-descriptors: --no-warped-descriptors, "
                          "no-warped: --no-warped-pass and two-way: "
                          "--two-way (not run unless named); lm: --init none --no-coarse-starts "
                          "(one run from the rest pose); paper: RegistrationOptions.paper_faithful(); nricp: trimesh")
@@ -214,6 +215,9 @@ def main() -> int:
             results["trimesh nricp_amberg"] = _in_child(run_nricp, source, target, target)
         if "default" in args.methods:
             results["ours, default"] = _in_child(run_ours, source, target, target, overrides)
+        if "no-fine-pass" in args.methods:  # the coarse pass's result without the fine run
+            results["ours, --no-fine-pass"] = _in_child(run_ours, source, target, target,
+                                                        {"fine_pass": False, **overrides})
         if "no-descriptors" in args.methods:  # the default until 2026-12-01 (s27)
             results["ours, --no-warped-descriptors"] = _in_child(run_ours, source, target, target,
                                                                  {"warped_descriptors": False, **overrides})

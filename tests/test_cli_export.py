@@ -115,6 +115,8 @@ def test_optimizer_flag_brings_its_quadrature_unless_given():
     assert options("--optimizer", "paper", "--init", "rigid").initialization == "rigid"
     assert default.coarse_starts and not paper.coarse_starts
     assert not options("--no-coarse-starts").coarse_starts
+    assert default.fine_pass == mm_options().fine_pass
+    assert options("--fine-pass").fine_pass and not options("--no-fine-pass").fine_pass
     assert options("--optimizer", "paper", "--coarse-starts").coarse_starts
     fast = options("--optimizer", "lm")
     assert (fast.optimizer, fast.quadrature) == ("lm", "band")

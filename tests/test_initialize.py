@@ -549,6 +549,30 @@ def test_coarse_starts_run_every_start_coarse_then_the_kept_one_on_the_grid():
     assert [s["start"] for s in small.metrics["starts"]] == ["rest"]
 
 
+def test_without_the_fine_pass_the_coarse_pass_result_is_kept():
+    """``fine_pass=False``: the coarse pass runs as with it, and its kept run is the result
+    (judged on the grid), with none of the fine run's evaluations."""
+    X, F = asymmetric_blob()
+    Y = bend(X, 0.6, axis=2, towards=0) + [0.03, 0.0, 0.0]
+    opts = mm.RegistrationOptions(grid=48, modes=3, start_check_modes=99, warped_pass=False)
+    both = mm.register((X, F), (Y, F), opts)
+    coarse = mm.register((X, F), (Y, F), opts.replace(fine_pass=False))
+    labels = [s["start"] for s in coarse.metrics["starts"]]
+    assert labels == [s["start"] for s in both.metrics["starts"]][:3]
+    assert all(label.endswith(" (coarse)") for label in labels)
+    # the same coarse runs, judged on the same grid
+    for a, b in zip(coarse.metrics["starts"], both.metrics["starts"][:3]):
+        assert (a["evaluations"], a["energy_grid"]) == (b["evaluations"], "fine")
+        assert a["energy"] == pytest.approx(b["energy"], rel=1e-12)
+    assert coarse.evaluations == both.evaluations - both.metrics["starts"][3]["evaluations"]
+    assert coarse.metrics["start"] in labels
+    kept = min((s for s in coarse.metrics["starts"] if np.isfinite(s["energy"])),
+               key=lambda s: s["edge_strain"])  # all within select_energy_factor here
+    assert coarse.metrics["start"] == kept["start"]
+    with pytest.raises(mm.OptionError, match="fine_pass"):
+        mm.RegistrationOptions(fine_pass=1)
+
+
 def test_points_queried_counts_every_query_of_the_source(monkeypatch):
     """``metrics["points_queried"]`` is every point sent to the source mesh's closest-point
     queries (counted here by wrapping the query): the runs' evaluations and band refreshes,
