@@ -785,8 +785,9 @@ class Registration:
         result (``warped_hops``: the field minimized from it with all modes, refined on
         Eq. 3, kept when its objective is below ``warped_hop_ratio`` times; ``hops`` in the
         report), and with ``warped_descriptors`` one more hop through the field with the heat
-        kernel signatures as channels (``"field": "descriptors"`` in ``hops``). Returns the field, the refining runs, the report (``metrics["warped_pass"]``)
-        and the seconds spent on the field (building it and minimizing it)."""
+        kernel signatures as channels (``"field": "descriptors"`` in ``hops``). Returns the
+        field, the refining runs, the report (``metrics["warped_pass"]``) and the seconds
+        spent on the field (building it and minimizing it)."""
         o = self.options
         h = self.quadrature.spacing
         field = WarpedRestField(self.basis, self.source_sdf_faces, self.sample_target, h,

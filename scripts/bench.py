@@ -193,7 +193,8 @@ def main() -> int:
     ap.add_argument("--set", nargs="*", default=[], metavar="OPTION=VALUE",
                     help="override options of every run of ours, e.g. --set grid=48")
     ap.add_argument("--methods", nargs="*", default=["default", "lm", "paper", "nricp"],
-                    choices=["default", "no-fine-pass", "no-descriptors", "no-warped", "two-way", "lm", "paper", "nricp"],
+                    choices=["default", "no-fine-pass", "no-descriptors", "no-warped", "two-way", "lm",
+                             "paper", "nricp"],
                     help="default: RegistrationOptions(); no-fine-pass: --no-fine-pass (the fast "
                          "setting); no-descriptors: --no-warped-descriptors, "
                          "no-warped: --no-warped-pass and two-way: "
