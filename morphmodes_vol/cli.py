@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import MorphModesError
+from .errors import MorphModesError, OptionError
 from .export import MESH_FORMATS, write_outputs
 from .options import (INITIALIZATIONS, OPTIMIZERS, PRECONDITIONERS, QUADRATURES, SIGN_METHODS, WARPED_CHOICES,
                       RegistrationOptions)
@@ -71,7 +71,11 @@ _SAME_NAMED_OPTIONS = ("target_grid", "max_iterations", "preconditioner", "quadr
 
 
 def _options_from_args(args) -> RegistrationOptions:
-    changes = {"grid": args.grid, "modes": args.modes, "seed": args.seed}
+    fast = getattr(args, "fast", False)
+    # the command's grid, or the fast setting's when coarser (the demo's is already)
+    grid = args.grid if args.grid is not None else (
+        min(args.default_grid, RegistrationOptions.fast().grid) if fast else args.default_grid)
+    changes = {"grid": grid, "modes": args.modes, "seed": args.seed}
     if args.optimizer is not None:
         changes["optimizer"] = args.optimizer
         if args.quadrature is None:  # each optimizer with its quadrature unless asked
@@ -96,19 +100,31 @@ def _options_from_args(args) -> RegistrationOptions:
         changes["initialization"] = args.init
     if getattr(args, "two_way", False):
         changes["two_way"] = True
+    if fast:
+        if args.optimizer == "paper":
+            raise OptionError("--fast and --optimizer paper are two different settings: give one")
+        return RegistrationOptions.fast().replace(**changes)  # the flags above override it
     return RegistrationOptions().replace(**changes)
 
 
 def _add_common(p: argparse.ArgumentParser, default_grid: int, default_modes: int) -> None:
     d = RegistrationOptions()
-    p.add_argument("--grid", type=int, default=default_grid,
-                   help=f"quadrature points along the longest side of the box (default {default_grid})")
+    fast = RegistrationOptions.fast()
+    p.add_argument("--grid", type=int, default=None,
+                   help=f"quadrature points along the longest side of the box (default {default_grid}, "
+                        f"{min(default_grid, fast.grid)} with --fast)")
+    p.set_defaults(default_grid=default_grid)
     p.add_argument("--target-grid", type=int, default=None,
                    help="target-SDF grid nodes along the longest side (default: --grid)")
     p.add_argument("--modes", type=int, default=default_modes,
                    help=f"maximum number of skinning eigenmodes, m_max (default {default_modes})")
     p.add_argument("--max-iterations", type=int, default=None,
                    help=f"cap on gradient steps over all stages (default {d.max_iterations})")
+    p.add_argument("--fast", action="store_true",
+                   help="the fast setting, RegistrationOptions.fast(): grid 48, no fine run after the "
+                        "coarse pass and the warped pass from the starts only, about half the time; the "
+                        "flags below override it "
+                        "(docs/method.md, \"The fast setting\")")
     p.add_argument("--optimizer", choices=list(OPTIMIZERS), default=None,
                    help=f"'lm' (Levenberg-Marquardt in the subspace, with --quadrature band) or "
                         f"'paper' (Algorithm 1's gradient descent from the rest pose: with "

@@ -63,16 +63,17 @@ def _import_libraries(method: str) -> None:
 
 def run_ours(source, target, truth, overrides: dict, preset: str = "default") -> dict:
     """One registration with our method, timed stage by stage (runs in a child process):
-    ``RegistrationOptions()`` (``preset="default"``) or ``paper_faithful()`` (``"paper"``)
-    with ``overrides``."""
+    ``RegistrationOptions()`` (``preset="default"``), ``fast()`` (``"fast"``) or
+    ``paper_faithful()`` (``"paper"``) with ``overrides``."""
     import numpy as np
 
     import morphmodes_vol as mm
 
     _import_libraries("ours")
     t0 = time.perf_counter()
-    options = (mm.RegistrationOptions.paper_faithful() if preset == "paper"
-               else mm.RegistrationOptions()).replace(**overrides)
+    presets = {"default": mm.RegistrationOptions, "fast": mm.RegistrationOptions.fast,
+               "paper": mm.RegistrationOptions.paper_faithful}
+    options = presets[preset]().replace(**overrides)
     reg = mm.Registration(_load(source), _load(target), options)
     result = reg.run()
     t = time.perf_counter()
@@ -193,10 +194,10 @@ def main() -> int:
     ap.add_argument("--set", nargs="*", default=[], metavar="OPTION=VALUE",
                     help="override options of every run of ours, e.g. --set grid=48")
     ap.add_argument("--methods", nargs="*", default=["default", "lm", "paper", "nricp"],
-                    choices=["default", "no-fine-pass", "no-descriptors", "no-warped", "two-way", "lm",
+                    choices=["default", "fast", "no-fine-pass", "no-descriptors", "no-warped", "two-way", "lm",
                              "paper", "nricp"],
-                    help="default: RegistrationOptions(); no-fine-pass: --no-fine-pass (the fast "
-                         "setting); no-descriptors: --no-warped-descriptors, "
+                    help="default: RegistrationOptions(); fast: --fast, RegistrationOptions.fast(); "
+                         "no-fine-pass: --no-fine-pass; no-descriptors: --no-warped-descriptors, "
                          "no-warped: --no-warped-pass and two-way: "
                          "--two-way (not run unless named); lm: --init none --no-coarse-starts "
                          "(one run from the rest pose); paper: RegistrationOptions.paper_faithful(); nricp: trimesh")
@@ -216,6 +217,8 @@ def main() -> int:
             results["trimesh nricp_amberg"] = _in_child(run_nricp, source, target, target)
         if "default" in args.methods:
             results["ours, default"] = _in_child(run_ours, source, target, target, overrides)
+        if "fast" in args.methods:  # RegistrationOptions.fast()
+            results["ours, --fast"] = _in_child(run_ours, source, target, target, overrides, "fast")
         if "no-fine-pass" in args.methods:  # the coarse pass's result without the fine run
             results["ours, --no-fine-pass"] = _in_child(run_ours, source, target, target,
                                                         {"fine_pass": False, **overrides})

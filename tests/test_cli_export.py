@@ -9,6 +9,7 @@ import pytest
 import trimesh
 
 from morphmodes_vol.cli import main
+from morphmodes_vol.errors import OptionError
 from morphmodes_vol.export import atomic_write_bytes
 from morphmodes_vol.primitives import capsule
 
@@ -118,6 +119,13 @@ def test_optimizer_flag_brings_its_quadrature_unless_given():
     assert default.fine_pass == mm_options().fine_pass
     assert options("--fine-pass").fine_pass and not options("--no-fine-pass").fine_pass
     assert options("--optimizer", "paper", "--coarse-starts").coarse_starts
+    # --fast is RegistrationOptions.fast() (a preset of two flags), which the other flags override
+    quick = options("--fast")
+    assert quick == mm_options.fast().replace(modes=quick.modes)
+    assert (quick.grid, default.grid) == (mm_options.fast().grid, mm_options().grid)
+    assert options("--fast", "--fine-pass").fine_pass and options("--fast", "--grid", "64").grid == 64
+    with pytest.raises(OptionError, match="--fast and --optimizer paper"):
+        options("--fast", "--optimizer", "paper")
     fast = options("--optimizer", "lm")
     assert (fast.optimizer, fast.quadrature) == ("lm", "band")
     mixed = options("--optimizer", "lm", "--quadrature", "full")
