@@ -14,9 +14,11 @@ onto ``--sweep-targets`` (default lion-01 and lion-05). Ground-truth error:
 
 Methods:
 - ``ours``: :class:`morphmodes_vol.RegistrationOptions` defaults, with ``--set`` overrides;
-- ``no-warped``: the same with ``warped_pass=False`` (the default until 2026-11-30: the runs
+- ``fast``: :meth:`RegistrationOptions.fast` (``--fast``: grid 48, no fine run, no warped-pass
+  starts from the other orientations), with the same overrides;
+- ``no-warped``: the defaults with ``warped_pass=False`` (the default until 2026-11-30: the runs
   alone, without the warped rest field);
-- ``two-way``: the same with ``two_way=True`` (the reverse registration's correspondences as
+- ``two-way``: the defaults with ``two_way=True`` (the reverse registration's correspondences as
   two more starts; about twice the time);
 - ``paper``: the paper-faithful settings, :meth:`RegistrationOptions.paper_faithful`
   (Algorithm 1's gradient descent from the rest pose, no initialization stage, 20 modes),
@@ -31,7 +33,8 @@ and resumed, and columns can be filled by separate invocations. ``--redo METHOD`
 method's rows first.
 
 Writes ``<out>/accuracy_runs.csv``, ``accuracy_table.md`` (error and time of every method per
-pair, the means and the ratios RICP+NRICP / ours, / no-warped and / two-way) and ``accuracy.png``.
+pair, the means and the ratios RICP+NRICP / ours, / fast, / no-warped and / two-way) and
+``accuracy.png``.
 """
 
 from __future__ import annotations
@@ -52,8 +55,8 @@ import morphmodes_vol as mm  # noqa: E402
 from morphmodes_vol.baselines import nricp, prepare_pair  # noqa: E402
 from morphmodes_vol.mesh import load_mesh  # noqa: E402
 
-METHODS = ("ours", "no-warped", "two-way", "paper", "nricp", "ricp+nricp")
-OURS = ("ours", "no-warped", "two-way")  # our settings compared with RICP+NRICP pair by pair
+METHODS = ("ours", "fast", "no-warped", "two-way", "paper", "nricp", "ricp+nricp")
+OURS = ("ours", "fast", "no-warped", "two-way")  # our settings compared with RICP+NRICP pair by pair
 
 
 #: options added with a default other than the earlier behaviour: a row stored before the
@@ -94,7 +97,7 @@ def pairs(angles: list[float], sweep_targets: list[str]) -> list[dict]:
 
 def run_method(method: str, source, target, truth, options: "mm.RegistrationOptions") -> dict:
     t = time.perf_counter()
-    if method in ("ours", "no-warped", "two-way", "paper"):
+    if method in OURS + ("paper",):
         r = mm.register(source, target, options, ground_truth=truth)
         extra = {"evaluations": r.evaluations, "modes": r.modes, "status": r.status,
                  "start": r.metrics.get("start", "rest"), "edge_strain": r.metrics.get("edge_strain", "")}
@@ -155,7 +158,7 @@ def plot(rows: list[dict], order: list[str], path: Path) -> None:
     x = np.arange(len(present))
     fig, ax = plt.subplots(figsize=(max(8, 0.38 * len(present)), 3.8))
     ax.plot(x, [ident[p] for p in present], "k:", label="identity", lw=1)
-    for m, style in zip(METHODS, ("s-", "P-", "v-", "d--", "^-.", "o--")):
+    for m, style in zip(METHODS, ("s-", "x-", "P-", "v-", "d--", "^-.", "o--")):
         if m in methods:
             ax.plot(x, [by.get((p, m), np.nan) for p in present], style, label=m, ms=4)
     ax.set_xticks(x)
@@ -177,7 +180,7 @@ def main() -> int:
     ap.add_argument("--angles", type=float, nargs="+", default=[-30, -20, -10, 0, 10, 20, 30])
     ap.add_argument("--sweep-targets", nargs="*", default=["lion-01", "lion-05"])
     ap.add_argument("--set", nargs="*", default=[], metavar="OPTION=VALUE",
-                    help="override the defaults of 'ours', e.g. --set modes=40")
+                    help="override the options of 'ours' (and 'fast', 'no-warped', 'two-way'), e.g. --set modes=40")
     ap.add_argument("--paper-grid", type=int, default=64, help="quadrature grid of 'paper'")
     ap.add_argument("--redo", nargs="*", default=[], choices=METHODS, help="drop these methods' rows first")
     ap.add_argument("--out", default=str(ROOT / "results" / "accuracy_study"))
@@ -193,6 +196,7 @@ def main() -> int:
 
     configs = {
         "ours": mm.RegistrationOptions().replace(**parse_overrides(args.set)),
+        "fast": mm.RegistrationOptions.fast().replace(**parse_overrides(args.set)),
         "no-warped": mm.RegistrationOptions(warped_pass=False).replace(**parse_overrides(args.set)),
         "two-way": mm.RegistrationOptions(two_way=True).replace(**parse_overrides(args.set)),
         "paper": mm.RegistrationOptions.paper_faithful().replace(grid=args.paper_grid),
