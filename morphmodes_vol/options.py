@@ -32,6 +32,8 @@ Initialization = Literal["none", "rigid", "similarity"]
 INITIALIZATIONS = typing.get_args(Initialization)
 WarpedChoice = Literal["objective", "field", "both"]
 WARPED_CHOICES = typing.get_args(WarpedChoice)
+Preset = Literal["default", "fast", "paper"]
+PRESETS = typing.get_args(Preset)
 
 
 @dataclass(frozen=True)
@@ -427,6 +429,22 @@ class RegistrationOptions:
         17 s per pair, against 0.0204 at 32.5 s for the defaults (docs/method.md, "The fast
         setting"). ``fast().replace(grid=g)`` for a grid study."""
         return cls(grid=48, fine_pass=False, warped_candidates=False)
+
+    @classmethod
+    def preset(cls, name: Preset) -> "RegistrationOptions":
+        """The options of a named setting: ``"default"`` (``RegistrationOptions()``),
+        ``"fast"`` (:meth:`fast`) or ``"paper"`` (:meth:`paper_faithful`); ``replace`` then
+        changes any field.
+
+        Examples
+        --------
+        >>> RegistrationOptions.preset("fast") == RegistrationOptions.fast()
+        True
+        """
+        makers = {"default": cls, "fast": cls.fast, "paper": cls.paper_faithful}
+        if name not in makers:
+            raise OptionError(f"preset {name!r} is unknown: expected one of {PRESETS}")
+        return makers[name]()
 
     def __post_init__(self) -> None:
         def need(cond: bool, name: str, what: str) -> None:

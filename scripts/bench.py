@@ -71,9 +71,7 @@ def run_ours(source, target, truth, overrides: dict, preset: str = "default") ->
 
     _import_libraries("ours")
     t0 = time.perf_counter()
-    presets = {"default": mm.RegistrationOptions, "fast": mm.RegistrationOptions.fast,
-               "paper": mm.RegistrationOptions.paper_faithful}
-    options = presets[preset]().replace(**overrides)
+    options = mm.RegistrationOptions.preset(preset).replace(**overrides)
     reg = mm.Registration(_load(source), _load(target), options)
     result = reg.run()
     t = time.perf_counter()

@@ -95,10 +95,25 @@ def test_sweep_and_data_dir_from_environment(dataset, monkeypatch):
     assert p.pairs[3].variant == {"grid": 16, "modes": 3}
 
 
+def test_options_preset_is_a_named_setting_the_other_keys_change(dataset):
+    """``[options] preset = "fast"`` starts from ``RegistrationOptions.fast()``; the other keys
+    and the sweep change it; without it the defaults."""
+    import morphmodes_vol as mm
+
+    p = load_pipeline(_toml(dataset, GLOB + '[options]\npreset = "fast"\nmodes = 3\n[sweep]\nfine_pass = [false, true]\n'))
+    assert [s.options for s in p.pairs[:2]] == [mm.RegistrationOptions.fast().replace(modes=3),
+                                                mm.RegistrationOptions.fast().replace(modes=3, fine_pass=True)]
+    assert p.pairs[0].options.grid == mm.RegistrationOptions.fast().grid
+    assert load_pipeline(_toml(dataset, GLOB)).pairs[0].options == mm.RegistrationOptions()
+    paper = load_pipeline(_toml(dataset, GLOB + '[options]\npreset = "paper"\n')).pairs[0].options
+    assert paper == mm.RegistrationOptions.paper_faithful()
+
+
 @pytest.mark.parametrize("body, key", [
     ('colour = 1\n' + GLOB, "colour"),
     (GLOB + "[options]\ngird = 12\n", "options.gird"),
     (GLOB + "[options]\ngrid = 2\n", "options"),
+    (GLOB + '[options]\npreset = "quick"\n', "options.preset"),
     ('[pairs]\nsource = "meshes/source.obj"\ntargets = "meshes/nothing*.obj"\n', "pairs.targets"),
     ('[pairs]\nall = "meshes/*.obj"\nmanifest = "x.csv"\n', "pairs"),
     ('[pairs]\nsource = "meshes/source.obj"\nall = "meshes/*.obj"\n', "pairs.source"),

@@ -17,7 +17,7 @@ from typing import Any
 
 from ..errors import OptionError, PipelineError
 from ..export import MESH_FORMATS
-from ..options import RegistrationOptions
+from ..options import PRESETS, RegistrationOptions
 
 __all__ = ["Pipeline", "PairSpec", "load_pipeline", "parse_pipeline"]
 
@@ -178,9 +178,14 @@ def _data_dir(doc: dict, base: Path, ck: _Checker) -> Path:
 def _options(doc: dict, ck: _Checker) -> RegistrationOptions:
     table = doc.get("options", {})
     names = {f.name for f in dataclasses.fields(RegistrationOptions)}
-    ck.keys(table, names, "options")
+    ck.keys(table, names | {"preset"}, "options")
+    # a named setting (RegistrationOptions.preset) that the other keys change
+    table = dict(table)
+    preset = table.pop("preset", "default")
+    if preset not in PRESETS:
+        ck.fail("options.preset", f"must be one of {', '.join(map(repr, PRESETS))}, got {preset!r}")
     try:
-        return RegistrationOptions(**table)
+        return RegistrationOptions.preset(preset).replace(**table)
     except (OptionError, TypeError) as exc:
         ck.fail("options", str(exc))
 
