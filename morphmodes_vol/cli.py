@@ -63,7 +63,8 @@ class ProgressPrinter:
 
 #: command-line flags whose destination is the :class:`RegistrationOptions` field of that name
 _SAME_NAMED_OPTIONS = ("target_grid", "max_iterations", "preconditioner", "quadrature", "target_backend",
-                       "target_sign", "landmark_weight", "isometry_weight", "coarse_starts", "fine_pass",
+                       "target_sign", "landmark_weight", "isometry_weight", "icp_start", "coarse_starts",
+                       "fine_pass",
                        "warped_pass",
                        "warped_candidates", "warped_choice", "warped_refine", "warped_prune_modes",
                        "warped_prune_ratio", "warped_hops", "warped_hop_iterations",
@@ -122,9 +123,9 @@ def _add_common(p: argparse.ArgumentParser, default_grid: int, default_modes: in
                    help=f"cap on gradient steps over all stages (default {d.max_iterations})")
     p.add_argument("--fast", action="store_true",
                    help="the fast setting, RegistrationOptions.fast(): grid 48, no fine run after the "
-                        "coarse pass and the warped pass from the starts only, about half the time; the "
-                        "flags below override it "
-                        "(docs/method.md, \"The fast setting\")")
+                        "coarse pass, no ICP start, the warped pass from the starts only; under half the "
+                        "time, a little less accurate; the flags below override it (docs/method.md, "
+                        "\"The fast setting\")")
     p.add_argument("--optimizer", choices=list(OPTIMIZERS), default=None,
                    help=f"'lm' (Levenberg-Marquardt in the subspace, with --quadrature band) or "
                         f"'paper' (Algorithm 1's gradient descent from the rest pose: with "
@@ -139,6 +140,9 @@ def _add_common(p: argparse.ArgumentParser, default_grid: int, default_modes: in
                    help="global alignment before the optimization: a rigid motion or similarity "
                         "minimizing the SDF energy from several orientations (default "
                         f"{d.initialization}; docs/method.md)")
+    p.add_argument("--icp-start", action=argparse.BooleanOptionalAction, default=None,
+                   help="with --init, also start Algorithm 1 from a rigid ICP alignment (default on, "
+                        "off with --fast)")
     p.add_argument("--coarse-starts", action=argparse.BooleanOptionalAction, default=None,
                    help="run the starts on every other grid node first, then the kept one on the "
                         "grid, and keep the less strained result (default on, off with "

@@ -190,6 +190,11 @@ class RegistrationOptions:
         kept there on the grid itself (``True``, default). ``False`` keeps the coarse pass's
         result, judged on the grid, and leaves the fine grid to the warped pass's refinements
         (docs/method.md, "Initialization and two starts", item 10).
+    overlap_field : bool
+        With ``warped_pass``: minimize the warped rest field from the starts (numpy, no
+        source query) on a second thread while Algorithm 1 runs from them, instead of after
+        it. The same results either way (tested); ``True`` (default) is faster on a machine
+        with two cores or more (docs/method.md, "The warped rest field beside the runs").
     select_energy_factor : float
         See ``init_keep_rest``; at least 1 (``1``: the lowest objective). With the isometry
         prior, every factor from 1.25 to 10 kept the same start on the 18 poses
@@ -389,6 +394,7 @@ class RegistrationOptions:
     init_lm_iterations_per_stage: int = 3
     coarse_starts: bool = True
     fine_pass: bool = True
+    overlap_field: bool = True
     isometry_weight: float = 3e-4
     isometry_tolerance: float = 0.2
     warped_pass: bool = True
@@ -422,13 +428,14 @@ class RegistrationOptions:
     @classmethod
     def fast(cls) -> "RegistrationOptions":
         """The fast setting (issue 6): the defaults on a grid of 48 instead of 64, without
-        the fine run after the coarse pass (``fine_pass=False``) and without the warped
-        pass's starts from the initialization's other orientations
-        (``warped_candidates=False``, which changed no result at grid 48). On the accuracy
-        study's 30 pairs: mean ground-truth error 0.0256 (4.1x below RICP+NRICP) at about
-        17 s per pair, against 0.0204 at 32.5 s for the defaults (docs/method.md, "The fast
-        setting"). ``fast().replace(grid=g)`` for a grid study."""
-        return cls(grid=48, fine_pass=False, warped_candidates=False)
+        the fine run after the coarse pass (``fine_pass=False``), without the warped pass's
+        starts from the initialization's other orientations (``warped_candidates=False``,
+        which changed no result at grid 48) and without the start from rigid ICP
+        (``icp_start=False``, which changed one). On the accuracy study's 30 pairs: mean
+        ground-truth error 0.0257 (4.1x below RICP+NRICP), at about 40% of the defaults'
+        time (docs/method.md, "The fast setting"). ``fast().replace(grid=g)`` for a grid
+        study."""
+        return cls(grid=48, fine_pass=False, warped_candidates=False, icp_start=False)
 
     @classmethod
     def preset(cls, name: Preset) -> "RegistrationOptions":
@@ -516,6 +523,7 @@ class RegistrationOptions:
         need(isinstance(self.icp_start, bool), "icp_start", "True or False")
         need(isinstance(self.coarse_starts, bool), "coarse_starts", "True or False")
         need(isinstance(self.fine_pass, bool), "fine_pass", "True or False")
+        need(isinstance(self.overlap_field, bool), "overlap_field", "True or False")
         need(isinstance(self.warped_pass, bool), "warped_pass", "True or False")
         need(self.warped_band_cells > 0, "warped_band_cells", "a positive float")
         need(_is_int(self.warped_iterations_per_stage) and self.warped_iterations_per_stage >= 1,

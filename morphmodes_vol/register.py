@@ -10,6 +10,8 @@ from __future__ import annotations
 import logging
 import os
 import time
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
 from typing import Callable
 
@@ -46,6 +48,8 @@ COARSE_SUFFIX = " (coarse)"
 """Added to a start's name for its run in the coarse pass (``coarse_starts``)."""
 WARPED_PREFIX = "warped: "
 """Put before a start's name for the run refined from the warped rest field (``warped_pass``)."""
+DESCRIPTOR_ERRORS = (MeshValidationError, ArpackError, np.linalg.LinAlgError)
+"""Why a descriptor field may not be built (logged, and the descriptor hop skipped)."""
 
 MIN_COARSE_NODES = 24
 """Fewest nodes along the longest side of the coarse pass's grid (``coarse_starts``), so
@@ -581,33 +585,24 @@ class Registration:
             starts = starts + aligned if self.options.init_keep_rest else aligned
         timings["initialize"] = time.perf_counter() - t
         t = time.perf_counter()
-        factor = self.options.select_energy_factor
-        coarse_pass = self.options.coarse_starts and max(self.quadrature.shape) >= 2 * MIN_COARSE_NODES
-        if self.options.coarse_starts and not coarse_pass:
-            log.info("grid of %d nodes: too coarse for a coarse pass (coarse_starts)", max(self.quadrature.shape))
-        if coarse_pass:
-            # every start on the coarse grid, then the kept one again on the fine grid; the
-            # less strained of the two results is kept (docs/method.md, "Initialization and
-            # two starts", item 10)
-            coarse = [(label + COARSE_SUFFIX, start, options) for label, start, options in starts]
-            runs = self._run_starts(coarse, progress, self.coarse_energy, self._coarse_objective)
-            kept = _select_start([r for r in runs if r.stopped is None], factor)
-            if self.options.fine_pass:
-                runs += self._run_starts([starts[runs.index(kept)]], progress)  # runs keep the starts' order
-                chosen = _select_start([kept, runs[-1]], factor)
-            else:
-                chosen = kept
-        else:
-            # a lone run is not compared with anything (unless two_way compares it with the
-            # run from the reverse registration): no objective on the full grid
-            runs = self._run_starts(starts, progress, judge=len(starts) > 1 or self.options.two_way
-                                    or self.options.warped_pass)
-            chosen = _select_start([r for r in runs if r.stopped is None], factor)
+        # the warped pass's field runs need nothing from the runs below: on a second core they
+        # go on beside them (numpy, no source queries; the same results as one after the other)
+        overlap = (ThreadPoolExecutor(1, thread_name_prefix="warped-field")
+                   if self.options.warped_pass and self.options.overlap_field else None)
+        with single_threaded_blas() if overlap is not None else nullcontext():
+            fields = (overlap.submit(self._warped_fields, starts, candidates,
+                                     self.options.warped_descriptors and self.Y is not None)
+                      if overlap is not None else None)
+            try:
+                chosen, runs = self._passes(starts, progress)
+            finally:
+                if overlap is not None:
+                    overlap.shutdown(wait=True)
         warped_field, warped = None, {}
         if self.options.warped_pass:
             t_warped = time.perf_counter()
             warped_field, warped_runs, warped, timings["warped_field"] = self._warped_pass(
-                starts, chosen, progress, candidates)
+                starts, chosen, progress, candidates, fields=None if fields is None else fields.result())
             runs += warped_runs
             chosen = next((r for r in warped_runs if r.label == warped["kept"]), chosen)
             timings["warped_pass"] = time.perf_counter() - t_warped
@@ -772,22 +767,43 @@ class Registration:
                                                             if k != "sdf_queries"))}
         return back, runs, report
 
-    def _warped_pass(self, starts, forward: "_StartRun", progress, candidates=()):
-        """``warped_pass`` (docs/method.md, "The warped rest field"): minimize the warped rest
-        field (:class:`~morphmodes_vol.warped_field.WarpedRestField`) from every start (and
-        from ``candidates``, ``(label, T0)`` pairs: the initialization stage's other
-        orientations with ``warped_candidates``; past ``warped_prune_modes`` modes only from
-        those of field energy within ``warped_prune_ratio`` of the lowest), refine the field
-        result of lowest objective
-        and/or of lowest field energy (``warped_choice``) on Eq. (3) (one stage with all
-        modes), and compare with the ``forward`` run's result by the objective on the full
-        grid (``objectives`` and ``kept_before_hops`` in the report); then hop from the kept
-        result (``warped_hops``: the field minimized from it with all modes, refined on
-        Eq. 3, kept when its objective is below ``warped_hop_ratio`` times; ``hops`` in the
-        report), and with ``warped_descriptors`` one more hop through the field with the heat
-        kernel signatures as channels (``"field": "descriptors"`` in ``hops``). Returns the
-        field, the refining runs, the report (``metrics["warped_pass"]``) and the seconds
-        spent on the field (building it and minimizing it)."""
+    def _passes(self, starts, progress) -> tuple["_StartRun", list["_StartRun"]]:
+        """Algorithm 1 from the starts: with ``coarse_starts``, every start on the coarse grid,
+        then (``fine_pass``) the kept one again on the grid, the less strained result kept;
+        else every start on the grid. Returns the run chosen and every run."""
+        factor = self.options.select_energy_factor
+        coarse_pass = self.options.coarse_starts and max(self.quadrature.shape) >= 2 * MIN_COARSE_NODES
+        if self.options.coarse_starts and not coarse_pass:
+            log.info("grid of %d nodes: too coarse for a coarse pass (coarse_starts)", max(self.quadrature.shape))
+        if coarse_pass:
+            # every start on the coarse grid, then the kept one again on the fine grid; the
+            # less strained of the two results is kept (docs/method.md, "Initialization and
+            # two starts", item 10)
+            coarse = [(label + COARSE_SUFFIX, start, options) for label, start, options in starts]
+            runs = self._run_starts(coarse, progress, self.coarse_energy, self._coarse_objective)
+            kept = _select_start([r for r in runs if r.stopped is None], factor)
+            if self.options.fine_pass:
+                runs += self._run_starts([starts[runs.index(kept)]], progress)  # runs keep the starts' order
+                chosen = _select_start([kept, runs[-1]], factor)
+            else:
+                chosen = kept
+        else:
+            # a lone run is not compared with anything (unless two_way compares it with the
+            # run from the reverse registration): no objective on the full grid
+            runs = self._run_starts(starts, progress, judge=len(starts) > 1 or self.options.two_way
+                                    or self.options.warped_pass)
+            chosen = _select_start([r for r in runs if r.stopped is None], factor)
+        return chosen, runs
+
+    def _warped_fields(self, starts, candidates=(), descriptors: bool = False) -> "_WarpedFields":
+        """The warped pass's field runs (``warped_pass``; :meth:`_warped_pass`): the field
+        built once, minimized from every start and from ``candidates`` (``(label, T0)``;
+        one that maps the source within ``start_merge_distance`` of a start already taken is
+        skipped) to ``warped_prune_modes`` modes, then from those of field energy within
+        ``warped_prune_ratio`` of the lowest to the end; with ``descriptors``, also the
+        descriptor field (:meth:`_descriptor_field`, or the error that stopped it). No source
+        query after the field's one at the start, and nothing from the runs on Eq. (3):
+        :meth:`run` lets it go on beside them (``overlap_field``)."""
         o = self.options
         h = self.quadrature.spacing
         field = WarpedRestField(self.basis, self.source_sdf_faces, self.sample_target, h,
@@ -816,13 +832,45 @@ class Registration:
             if pruned:
                 log.info("warped rest field: %d of %d starts stopped after %d modes (field energy "
                          "above %.3g)", len(pruned), len(first), K, bar)
-        results, objectives = {}, {}
+        results = {}
         for label, begun in first.items():
-            if label in pruned:
-                continue
-            run = begun if not staged else begun.then(field.minimize(
-                begun.T, o.modes, o.warped_iterations_per_stage, first_mode=K + 1, start_damping=begun.damping))
-            results[label] = run
+            if label not in pruned:
+                results[label] = begun if not staged else begun.then(field.minimize(
+                    begun.T, o.modes, o.warped_iterations_per_stage, first_mode=K + 1,
+                    start_damping=begun.damping))
+        made = None
+        if descriptors:
+            try:
+                made = self._descriptor_field(field)
+            except DESCRIPTOR_ERRORS as exc:  # raised again where the field is used
+                made = exc
+        return _WarpedFields(field, skipped, first, pruned, results, K, staged, made)
+
+    def _warped_pass(self, starts, forward: "_StartRun", progress, candidates=(),
+                     fields: "_WarpedFields | None" = None):
+        """``warped_pass`` (docs/method.md, "The warped rest field"): minimize the warped rest
+        field (:class:`~morphmodes_vol.warped_field.WarpedRestField`) from every start (and
+        from ``candidates``, ``(label, T0)`` pairs: the initialization stage's other
+        orientations with ``warped_candidates``; past ``warped_prune_modes`` modes only from
+        those of field energy within ``warped_prune_ratio`` of the lowest), refine the field
+        result of lowest objective
+        and/or of lowest field energy (``warped_choice``) on Eq. (3) (one stage with all
+        modes), and compare with the ``forward`` run's result by the objective on the full
+        grid (``objectives`` and ``kept_before_hops`` in the report); then hop from the kept
+        result (``warped_hops``: the field minimized from it with all modes, refined on
+        Eq. 3, kept when its objective is below ``warped_hop_ratio`` times; ``hops`` in the
+        report), and with ``warped_descriptors`` one more hop through the field with the heat
+        kernel signatures as channels (``"field": "descriptors"`` in ``hops``). Returns the
+        field, the refining runs, the report (``metrics["warped_pass"]``) and the seconds
+        spent on the field (building it and minimizing it)."""
+        o = self.options
+        if fields is None:
+            fields = self._warped_fields(starts, candidates)
+        field, skipped, first, pruned, results = (fields.field, fields.skipped, fields.first, fields.pruned,
+                                                  fields.results)
+        K, staged = fields.prune_modes, fields.staged
+        objectives = {}  # on Eq. (3): source queries, so here rather than in _warped_fields
+        for label, run in results.items():
             if o.warped_choice != "field":
                 objectives[label] = self._objective(self.basis.deform(run.T))
             log.info("warped rest field from the %s start: %d evaluations, %d steps, %.2f s, "
@@ -874,8 +922,11 @@ class Registration:
             # then one hop through the field with descriptors (docs/method.md, "Descriptors
             # in the warped field")
             try:
-                dfield, grid_nodes, descriptor_seconds = self._descriptor_field(field)
-            except (MeshValidationError, ArpackError, np.linalg.LinAlgError) as exc:
+                made = fields.descriptors
+                if isinstance(made, Exception):
+                    raise made
+                dfield, grid_nodes, descriptor_seconds = made or self._descriptor_field(field)
+            except DESCRIPTOR_ERRORS as exc:
                 log.warning("warped_descriptors: no heat kernel signature (%s); no descriptor hop", exc)
                 descriptors = {"skipped": f"no heat kernel signature: {exc}"}
             else:
@@ -934,6 +985,24 @@ class Registration:
         after = landmark_rms(vertices, self.landmarks)
         return {"landmarks": len(self.landmarks), "initial_landmark_rms": before,
                 "landmark_rms": after, "landmark_rms_fraction": after / target_diagonal}
+
+
+@dataclass(frozen=True)
+class _WarpedFields:
+    """What :meth:`Registration._warped_fields` returns: the field, the candidates skipped,
+    every field run to ``prune_modes`` modes (``first``), those stopped there (``pruned``,
+    label -> field energy) and the finished runs (``results``); ``staged``: whether the runs
+    were stopped at ``prune_modes`` at all; ``descriptors``: the descriptor field made beside
+    them (``_descriptor_field``'s result or its error), else ``None``."""
+
+    field: WarpedRestField
+    skipped: list
+    first: dict
+    pruned: dict
+    results: dict
+    prune_modes: int
+    staged: bool
+    descriptors: tuple | Exception | None = None  # _descriptor_field's result, or its error
 
 
 @dataclass

@@ -124,6 +124,7 @@ def test_optimizer_flag_brings_its_quadrature_unless_given():
     assert quick == mm_options.fast().replace(modes=quick.modes)
     assert (quick.grid, default.grid) == (mm_options.fast().grid, mm_options().grid)
     assert options("--fast", "--fine-pass").fine_pass and options("--fast", "--grid", "64").grid == 64
+    assert options("--fast", "--icp-start").icp_start and not options("--no-icp-start").icp_start
     with pytest.raises(OptionError, match="--fast and --optimizer paper"):
         options("--fast", "--optimizer", "paper")
     fast = options("--optimizer", "lm")

@@ -157,6 +157,25 @@ def test_warped_pass_keeps_the_lower_objective_and_counts_its_work():
     assert r.metrics["ground_truth_error"] < 0.2 * r.metrics["identity_error"]
 
 
+def test_field_runs_beside_the_runs_give_the_results_of_one_after_the_other():
+    """``overlap_field``: the warped field's runs on a second thread while Algorithm 1 runs
+    change nothing but the time: the same vertices, runs and field energies, bit for bit."""
+    source, target = _bent_pair()
+    options = mm.RegistrationOptions(grid=24, modes=6)
+    assert options.overlap_field  # the default
+    after = mm.register(source, target, options.replace(overlap_field=False))
+    beside = mm.register(source, target, options)
+    np.testing.assert_array_equal(beside.vertices, after.vertices)
+    np.testing.assert_equal(beside.metrics["starts"], after.metrics["starts"])
+    for key in ("field_energies", "field_energies_at_prune", "pruned", "objectives", "hops", "kept",
+                "field_evaluations", "skipped_candidates"):
+        assert beside.metrics["warped_pass"][key] == after.metrics["warped_pass"][key], key
+    assert beside.metrics["evaluations_all_starts"] == after.metrics["evaluations_all_starts"]
+    assert beside.metrics["points_queried"] == after.metrics["points_queried"]
+    with pytest.raises(mm.OptionError, match="overlap_field"):
+        mm.RegistrationOptions(overlap_field="yes")
+
+
 def test_warped_candidates_and_the_choice_by_field_energy():
     """``warped_candidates`` adds the initialization's other orientations as field starts,
     skipping those that repeat a start; ``warped_choice`` picks the field results refined:

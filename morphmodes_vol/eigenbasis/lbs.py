@@ -85,21 +85,25 @@ class LBSBasis:
         ``B_j^T B_j = Gram_j kron I3`` for the 12 columns of mode ``j``; used to precondition
         the gradient step so that translation and linear parts move vertices alike.
         """
-        if self._gram is None or self._gram.shape[0] < m:
+        gram = self._gram  # read once: another thread may replace it (the same values)
+        if gram is None or gram.shape[0] < m:
             W2 = self.W**2
-            self._gram = np.einsum("nj,nk,nl->jkl", W2, self.Xh, self.Xh, optimize=True)
-        return self._gram[:m]
+            gram = self._gram = np.einsum("nj,nk,nl->jkl", W2, self.Xh, self.Xh, optimize=True)
+        return gram[:m]
 
     def skinning_matrix(self, m: int) -> np.ndarray:
         """``C (n, 4m)``, ``C[i, 4 j + b] = W[i, j] [x0_i 1]_b``: each coordinate of the
         displacement is ``C`` times that coordinate's coefficients (Eq. 6), and ``B = C kron
         I3`` (Eq. 5). Read-only: the last one built is kept for the next call."""
         # the optimizer asks for one m many times in a row: the last one is kept (read-only)
-        if self._skinning is None or self._skinning.shape[1] != 4 * m:
+        # read once: another thread may replace it with another m's between a test and a return
+        C = self._skinning
+        if C is None or C.shape[1] != 4 * m:
             n = self.X0.shape[0]
-            self._skinning = (self.W[:, :m, None] * self.Xh[:, None, :]).reshape(n, 4 * m)
-            self._skinning.flags.writeable = False
-        return self._skinning
+            C = (self.W[:, :m, None] * self.Xh[:, None, :]).reshape(n, 4 * m)
+            C.flags.writeable = False
+            self._skinning = C
+        return C
 
     def fit(self, X: np.ndarray, m: int, rows: sp.spmatrix | None = None) -> np.ndarray:
         """The blocks ``T (m, 3, 4)`` whose deformation is closest to ``X`` in the least
