@@ -862,7 +862,8 @@ class Registration:
         report), and with ``warped_descriptors`` one more hop through the field with the heat
         kernel signatures as channels (``"field": "descriptors"`` in ``hops``). Returns the
         field, the refining runs, the report (``metrics["warped_pass"]``) and the seconds
-        spent on the field (building it and minimizing it)."""
+        spent on the field (building it and minimizing it). ``fields``: the field runs made
+        beside Algorithm 1's (:meth:`_warped_fields`, ``overlap_field``), else made here."""
         o = self.options
         if fields is None:
             fields = self._warped_fields(starts, candidates)

@@ -119,7 +119,7 @@ def test_optimizer_flag_brings_its_quadrature_unless_given():
     assert default.fine_pass == mm_options().fine_pass
     assert options("--fine-pass").fine_pass and not options("--no-fine-pass").fine_pass
     assert options("--optimizer", "paper", "--coarse-starts").coarse_starts
-    # --fast is RegistrationOptions.fast() (a preset of two flags), which the other flags override
+    # --fast is RegistrationOptions.fast() (a preset of four options), which the other flags override
     quick = options("--fast")
     assert quick == mm_options.fast().replace(modes=quick.modes)
     assert (quick.grid, default.grid) == (mm_options.fast().grid, mm_options().grid)

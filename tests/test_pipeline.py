@@ -107,6 +107,8 @@ def test_options_preset_is_a_named_setting_the_other_keys_change(dataset):
     assert load_pipeline(_toml(dataset, GLOB)).pairs[0].options == mm.RegistrationOptions()
     paper = load_pipeline(_toml(dataset, GLOB + '[options]\npreset = "paper"\n')).pairs[0].options
     assert paper == mm.RegistrationOptions.paper_faithful()
+    with pytest.raises(mm.OptionError, match="preset 'quick' is unknown"):
+        mm.RegistrationOptions.preset("quick")
 
 
 @pytest.mark.parametrize("body, key", [
