@@ -64,10 +64,8 @@ class ProgressPrinter:
 #: command-line flags whose destination is the :class:`RegistrationOptions` field of that name
 _SAME_NAMED_OPTIONS = ("target_grid", "max_iterations", "preconditioner", "quadrature", "target_backend",
                        "target_sign", "landmark_weight", "isometry_weight", "icp_start", "coarse_starts",
-                       "fine_pass",
-                       "warped_pass",
-                       "warped_candidates", "warped_choice", "warped_refine", "warped_prune_modes",
-                       "warped_prune_ratio", "warped_hops", "warped_hop_iterations",
+                       "fine_pass", "warped_pass", "warped_candidates", "warped_choice", "warped_refine",
+                       "warped_prune_modes", "warped_prune_ratio", "warped_hops", "warped_hop_iterations",
                        "warped_hop_ratio", "warped_descriptors", "warped_descriptor_weight")
 
 

@@ -14,8 +14,8 @@ onto ``--sweep-targets`` (default lion-01 and lion-05). Ground-truth error:
 
 Methods:
 - ``ours``: :class:`morphmodes_vol.RegistrationOptions` defaults, with ``--set`` overrides;
-- ``fast``: :meth:`RegistrationOptions.fast` (``--fast``: grid 48, no fine run, no warped-pass
-  starts from the other orientations), with the same overrides;
+- ``fast``: :meth:`RegistrationOptions.fast` (``--fast``: grid 48, no fine run, no ICP start,
+  no warped-pass starts from the other orientations), with the same overrides;
 - ``no-warped``: the defaults with ``warped_pass=False`` (the default until 2026-11-30: the runs
   alone, without the warped rest field);
 - ``two-way``: the defaults with ``two_way=True`` (the reverse registration's correspondences as
@@ -180,7 +180,8 @@ def main() -> int:
     ap.add_argument("--angles", type=float, nargs="+", default=[-30, -20, -10, 0, 10, 20, 30])
     ap.add_argument("--sweep-targets", nargs="*", default=["lion-01", "lion-05"])
     ap.add_argument("--set", nargs="*", default=[], metavar="OPTION=VALUE",
-                    help="override the options of 'ours' (and 'fast', 'no-warped', 'two-way'), e.g. --set modes=40")
+                    help="override the options of 'ours', 'fast', 'no-warped' and 'two-way', "
+                         "e.g. --set modes=40")
     ap.add_argument("--paper-grid", type=int, default=64, help="quadrature grid of 'paper'")
     ap.add_argument("--redo", nargs="*", default=[], choices=METHODS, help="drop these methods' rows first")
     ap.add_argument("--out", default=str(ROOT / "results" / "accuracy_study"))

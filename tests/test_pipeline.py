@@ -100,7 +100,8 @@ def test_options_preset_is_a_named_setting_the_other_keys_change(dataset):
     and the sweep change it; without it the defaults."""
     import morphmodes_vol as mm
 
-    p = load_pipeline(_toml(dataset, GLOB + '[options]\npreset = "fast"\nmodes = 3\n[sweep]\nfine_pass = [false, true]\n'))
+    body = GLOB + '[options]\npreset = "fast"\nmodes = 3\n[sweep]\nfine_pass = [false, true]\n'
+    p = load_pipeline(_toml(dataset, body))
     assert [s.options for s in p.pairs[:2]] == [mm.RegistrationOptions.fast().replace(modes=3),
                                                 mm.RegistrationOptions.fast().replace(modes=3, fine_pass=True)]
     assert p.pairs[0].options.grid == mm.RegistrationOptions.fast().grid
