@@ -17,7 +17,7 @@ from typing import Any
 
 from ..errors import OptionError, PipelineError
 from ..export import MESH_FORMATS
-from ..options import PRESETS, RegistrationOptions
+from ..options import RegistrationOptions
 
 __all__ = ["Pipeline", "PairSpec", "load_pipeline", "parse_pipeline"]
 
@@ -179,13 +179,14 @@ def _options(doc: dict, ck: _Checker) -> RegistrationOptions:
     table = doc.get("options", {})
     names = {f.name for f in dataclasses.fields(RegistrationOptions)}
     ck.keys(table, names | {"preset"}, "options")
-    # a named setting (RegistrationOptions.preset) that the other keys change
+    # a named setting (RegistrationOptions.preset, which checks the name) that the other keys change
     table = dict(table)
-    preset = table.pop("preset", "default")
-    if preset not in PRESETS:
-        ck.fail("options.preset", f"must be one of {', '.join(map(repr, PRESETS))}, got {preset!r}")
     try:
-        return RegistrationOptions.preset(preset).replace(**table)
+        base = RegistrationOptions.preset(table.pop("preset", "default"))
+    except OptionError as exc:
+        ck.fail("options.preset", str(exc))
+    try:
+        return base.replace(**table)
     except (OptionError, TypeError) as exc:
         ck.fail("options", str(exc))
 
