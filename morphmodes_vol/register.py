@@ -562,38 +562,21 @@ class Registration:
         """
         timings = dict(self.timings)
         compared_before = _comparison_counters(self._objectives.values())
-        t = time.perf_counter()
-        starts: list[tuple[str, np.ndarray | None, RegistrationOptions]] = [("rest", None, self.options)]
-        init_summary = {}
-        candidates = []  # the initialization's other orientations (warped_candidates)
-        if self.options.initialization != "none":
-            aligned_options = self.options.replace(
-                lm_iterations_per_stage=self.options.init_lm_iterations_per_stage)
-            alignment = self.initial_alignment()
-            init_summary = alignment.summary()
-            aligned = [("aligned", self._start_coefficients(alignment.matrix), aligned_options)]
-            if self.options.warped_pass and self.options.warped_candidates:
-                candidates = [(f"candidate {i}", self._start_coefficients(M))
-                              for i, M in alignment.refined_matrices.items() if i != alignment.chosen]
-            if self.options.icp_start:
-                if self.Y is None:
-                    log.info("no target mesh (an SDF target): no ICP start")
-                else:
-                    icp = self.icp_alignment()
-                    init_summary.update(icp.summary())
-                    aligned.append(("icp", self._start_coefficients(icp.matrix), aligned_options))
-            starts = starts + aligned if self.options.init_keep_rest else aligned
-        timings["initialize"] = time.perf_counter() - t
-        t = time.perf_counter()
-        # the warped pass's field runs need nothing from the runs below: on a second core they
-        # go on beside them (numpy, no source queries; the same results as one after the other)
+        # the warped pass's field runs need nothing from the runs of Algorithm 1, and its
+        # descriptor channels nothing but the two meshes: on a second core they go on beside
+        # the initialization and the runs (numpy, no source queries; the same results as one
+        # after the other)
         overlap = (ThreadPoolExecutor(1, thread_name_prefix="warped-field")
                    if self.options.warped_pass and self.options.overlap_field else None)
         with single_threaded_blas() if overlap is not None else nullcontext():
-            fields = (overlap.submit(self._warped_fields, starts, candidates,
-                                     self.options.warped_descriptors and self.Y is not None)
-                      if overlap is not None else None)
             try:
+                channels = (overlap.submit(self._descriptor_channels_or_error)
+                            if overlap is not None and self.options.warped_descriptors and self.Y is not None
+                            else None)
+                starts, candidates, init_summary, timings["initialize"] = self._starts()
+                fields = (overlap.submit(self._warped_fields, starts, candidates, channels)
+                          if overlap is not None else None)
+                t = time.perf_counter()
                 chosen, runs = self._passes(starts, progress)
             finally:
                 if overlap is not None:
@@ -724,6 +707,34 @@ class Registration:
             target_faces=self.target_faces,
         )
 
+    def _starts(self) -> tuple[list, list, dict, float]:
+        """The starts of the runs (``(label, T0 or None, options)``: the rest pose, the SDF
+        alignment, rigid ICP, as the options ask), the initialization's other orientations
+        for the warped pass (``(label, T0)``, ``warped_candidates``), the initialization's
+        report and the seconds spent."""
+        t = time.perf_counter()
+        starts: list[tuple[str, np.ndarray | None, RegistrationOptions]] = [("rest", None, self.options)]
+        init_summary = {}
+        candidates = []  # the initialization's other orientations (warped_candidates)
+        if self.options.initialization != "none":
+            aligned_options = self.options.replace(
+                lm_iterations_per_stage=self.options.init_lm_iterations_per_stage)
+            alignment = self.initial_alignment()
+            init_summary = alignment.summary()
+            aligned = [("aligned", self._start_coefficients(alignment.matrix), aligned_options)]
+            if self.options.warped_pass and self.options.warped_candidates:
+                candidates = [(f"candidate {i}", self._start_coefficients(M))
+                              for i, M in alignment.refined_matrices.items() if i != alignment.chosen]
+            if self.options.icp_start:
+                if self.Y is None:
+                    log.info("no target mesh (an SDF target): no ICP start")
+                else:
+                    icp = self.icp_alignment()
+                    init_summary.update(icp.summary())
+                    aligned.append(("icp", self._start_coefficients(icp.matrix), aligned_options))
+            starts = starts + aligned if self.options.init_keep_rest else aligned
+        return starts, candidates, init_summary, time.perf_counter() - t
+
     def _two_way(self, forward: "_StartRun", progress) -> tuple["RegistrationResult", list["_StartRun"], dict]:
         """``two_way`` (docs/method.md, "Two-way registration"): register the target onto the
         source, fit the subspace to the correspondences it implies, in two ways: the source
@@ -795,15 +806,16 @@ class Registration:
             chosen = _select_start([r for r in runs if r.stopped is None], factor)
         return chosen, runs
 
-    def _warped_fields(self, starts, candidates=(), descriptors: bool = False) -> "_WarpedFields":
+    def _warped_fields(self, starts, candidates=(), descriptors=None) -> "_WarpedFields":
         """The warped pass's field runs (``warped_pass``; :meth:`_warped_pass`): the field
         built once, minimized from every start and from ``candidates`` (``(label, T0)``;
         one that maps the source within ``start_merge_distance`` of a start already taken is
         skipped) to ``warped_prune_modes`` modes, then from those of field energy within
-        ``warped_prune_ratio`` of the lowest to the end; with ``descriptors``, also the
-        descriptor field (:meth:`_descriptor_field`, or the error that stopped it). No source
-        query after the field's one at the start, and nothing from the runs on Eq. (3):
-        :meth:`run` lets it go on beside them (``overlap_field``)."""
+        ``warped_prune_ratio`` of the lowest to the end; with ``descriptors`` (the future of
+        :meth:`_descriptor_channels_or_error`), also the descriptor field
+        (:meth:`_descriptor_field`, or the error that stopped it). No source query after the
+        field's one at the start, and nothing from the runs on Eq. (3): :meth:`run` lets it
+        go on beside them (``overlap_field``)."""
         o = self.options
         h = self.quadrature.spacing
         field = WarpedRestField(self.basis, self.source_sdf_faces, self.sample_target, h,
@@ -839,11 +851,10 @@ class Registration:
                     begun.T, o.modes, o.warped_iterations_per_stage, first_mode=K + 1,
                     start_damping=begun.damping))
         made = None
-        if descriptors:
-            try:
-                made = self._descriptor_field(field)
-            except DESCRIPTOR_ERRORS as exc:  # raised again where the field is used
-                made = exc
+        if descriptors is not None:
+            made = descriptors.result()  # an error is raised again where the field is used
+            if not isinstance(made, Exception):
+                made = self._descriptor_field(field, made)
         return _WarpedFields(field, skipped, first, pruned, results, K, staged, made)
 
     def _warped_pass(self, starts, forward: "_StartRun", progress, candidates=(),
@@ -961,23 +972,41 @@ class Registration:
         seconds = float(field.build_seconds + sum(r.seconds for r in spent) + descriptor_seconds)
         return field, runs, report, seconds
 
-    def _descriptor_field(self, field: WarpedRestField) -> tuple[WarpedRestField, int, float]:
-        """``field`` with the descriptor channels (``warped_descriptors``; docs/method.md,
+    def _descriptor_channels(self) -> "_DescriptorChannels":
+        """The descriptor channels of the warped field (``warped_descriptors``; docs/method.md,
         "Descriptors in the warped field"): the heat kernel signatures of the source and the
-        target mesh, the target's on a grid of half the quadrature's nodes over its box.
-        Returns the field, that grid's node count and the seconds spent."""
+        target mesh, the target's on a grid of half the quadrature's nodes over its box. They
+        depend on the two meshes alone: :meth:`run` makes them beside the initialization
+        (``overlap_field``)."""
         o = self.options
         t = time.perf_counter()
         source = heat_kernel_signature(self.X0, self.source_sdf_faces, seed=o.seed)
         target = heat_kernel_signature(self.Y, self.target_sdf_faces, seed=o.seed)
         grid = Grid.covering(self.quadrature.origin, self.quadrature.upper, max(max(self.quadrature.shape) // 2, 2))
         values = surface_descriptor_grid(self.Y, self.target_sdf_faces, target, grid)
-        dfield = field.with_descriptors((source, lambda P: trilinear_sample(values, grid, P)),
-                                        o.warped_descriptor_weight)
-        seconds = time.perf_counter() - t
+        return _DescriptorChannels(source, values, grid, time.perf_counter() - t)
+
+    def _descriptor_channels_or_error(self) -> "_DescriptorChannels | Exception":
+        """:meth:`_descriptor_channels`, or the error that stopped it (raised again where
+        the descriptor hop is made, which logs it and goes without)."""
+        try:
+            return self._descriptor_channels()
+        except DESCRIPTOR_ERRORS as exc:
+            return exc
+
+    def _descriptor_field(self, field: WarpedRestField,
+                          channels: "_DescriptorChannels | None" = None) -> tuple[WarpedRestField, int, float]:
+        """``field`` with the descriptor channels (``channels``, made by
+        :meth:`_descriptor_channels` when not given). Returns the field, the node count of
+        the target's descriptor grid and the seconds spent on both."""
+        t = time.perf_counter()
+        c = self._descriptor_channels() if channels is None else channels
+        dfield = field.with_descriptors((c.source, lambda P: trilinear_sample(c.values, c.grid, P)),
+                                        self.options.warped_descriptor_weight)
+        seconds = c.seconds + time.perf_counter() - t if channels is not None else time.perf_counter() - t
         log.info("descriptor field: heat kernel signatures and the target's grid of %d nodes (%.2f s)",
-                 grid.size, seconds)
-        return dfield, int(grid.size), seconds
+                 c.grid.size, seconds)
+        return dfield, int(c.grid.size), seconds
 
     def _landmark_metrics(self, vertices: np.ndarray, target_diagonal: float) -> dict:
         """RMS landmark distance of the rest pose and of the registered ``vertices (n, 3)``,
@@ -986,6 +1015,19 @@ class Registration:
         after = landmark_rms(vertices, self.landmarks)
         return {"landmarks": len(self.landmarks), "initial_landmark_rms": before,
                 "landmark_rms": after, "landmark_rms_fraction": after / target_diagonal}
+
+
+@dataclass(frozen=True)
+class _DescriptorChannels:
+    """What :meth:`Registration._descriptor_channels` makes: the source's heat kernel
+    signatures ``source (n, c)``, the target's on the nodes of ``grid`` (``values``, as
+    :func:`~morphmodes_vol.descriptors.surface_descriptor_grid` returns them) and the seconds
+    spent."""
+
+    source: np.ndarray
+    values: np.ndarray
+    grid: Grid
+    seconds: float
 
 
 @dataclass(frozen=True)

@@ -2,6 +2,8 @@
 of its Gauss-Newton model, recovery of known motions, the choice by the objective in
 :meth:`Registration.run`, and a real pose it recovers."""
 
+import sys
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -168,12 +170,39 @@ def test_field_runs_beside_the_runs_give_the_results_of_one_after_the_other():
     np.testing.assert_array_equal(beside.vertices, after.vertices)
     np.testing.assert_equal(beside.metrics["starts"], after.metrics["starts"])
     for key in ("field_energies", "field_energies_at_prune", "pruned", "objectives", "hops", "kept",
-                "field_evaluations", "skipped_candidates"):
+                "field_evaluations", "skipped_candidates", "descriptors"):
         assert beside.metrics["warped_pass"][key] == after.metrics["warped_pass"][key], key
+    # the descriptor channels, made beside the initialization, were used by a descriptor hop
+    assert "channels" in beside.metrics["warped_pass"]["descriptors"]
+    assert any(h["field"] == "descriptors" for h in beside.metrics["warped_pass"]["hops"])
     assert beside.metrics["evaluations_all_starts"] == after.metrics["evaluations_all_starts"]
     assert beside.metrics["points_queried"] == after.metrics["points_queried"]
     with pytest.raises(mm.OptionError, match="overlap_field"):
         mm.RegistrationOptions(overlap_field="yes")
+
+
+@pytest.mark.parametrize("overlap", [True, False])
+def test_a_failed_descriptor_is_logged_and_the_descriptor_hop_skipped(monkeypatch, caplog, overlap):
+    """When the heat kernel signature fails (here an ARPACK error), beside the runs or after
+    them, the registration goes on without the descriptor hop: the result of
+    ``warped_descriptors=False``, and the reason in the report and the log."""
+    from scipy.sparse.linalg import ArpackError
+
+    source, target = _bent_pair()
+    options = mm.RegistrationOptions(grid=24, modes=6, overlap_field=overlap)
+    without = mm.register(source, target, options.replace(warped_descriptors=False))
+
+    def fail(*args, **kwargs):
+        raise ArpackError(-9999)
+
+    monkeypatch.setattr(sys.modules["morphmodes_vol.register"], "heat_kernel_signature", fail)
+    with caplog.at_level("WARNING", logger="morphmodes_vol.register"):
+        failed = mm.register(source, target, options)
+    w = failed.metrics["warped_pass"]
+    assert w["descriptors"]["skipped"].startswith("no heat kernel signature: ARPACK error -9999")
+    assert not any(h["field"] == "descriptors" for h in w["hops"])
+    assert "no descriptor hop" in caplog.text
+    np.testing.assert_array_equal(failed.vertices, without.vertices)
 
 
 def test_warped_candidates_and_the_choice_by_field_energy():
