@@ -166,9 +166,10 @@ class RegistrationOptions:
         unrotated start's (an orientation prior; docs/method.md has the measurements).
     init_keep_rest : bool
         With an initialization, run Algorithm 1 from the rest pose (the paper's start) as
-        well as from the aligned start (and the ICP start, ``icp_start``), and keep the result that stretches the source's edges
-        least (:func:`morphmodes_vol.metrics.edge_strain`) among those whose objective (Eq. 3
-        on the full grid plus the isometry prior and landmarks when on) is within
+        well as from the aligned start (and the ICP start, ``icp_start``), and keep the
+        result that stretches the source's edges least
+        (:func:`morphmodes_vol.metrics.edge_strain`) among those whose objective (Eq. 3 on
+        the full grid plus the isometry prior and landmarks when on) is within
         ``select_energy_factor`` of the lowest; ``False`` runs from the aligned start only.
     icp_start : bool
         With an initialization and a target mesh, also run Algorithm 1 from a rigid ICP
@@ -193,10 +194,11 @@ class RegistrationOptions:
     overlap_field : bool
         With ``warped_pass``: make the descriptor channels (beside the initialization), then
         minimize the warped rest field from the starts (numpy, no source query), on a second
-        thread while Algorithm 1 runs from them, instead of after it. The same results but for the last bits of some BLAS products (bit for bit on the
-        test pair; on the accuracy study one error of 30 moved, by 0.3%); ``True`` (default)
-        is faster with two cores or more: lion-05 26.6 s against 30.6 (docs/method.md, "The
-        warped rest field beside the runs").
+        thread while Algorithm 1 runs from them, instead of after it. The same results but
+        for the last bits of some BLAS products (bit for bit on the test pair; on the
+        accuracy study one error of 30 moved, by 0.3%); ``True`` (default) is faster with two
+        cores or more: lion-05 26.6 s against 30.6 (docs/method.md, "The warped rest field
+        beside the runs").
     select_energy_factor : float
         See ``init_keep_rest``; at least 1 (``1``: the lowest objective). With the isometry
         prior, every factor from 1.25 to 10 kept the same start on the 18 poses

@@ -1003,7 +1003,7 @@ class Registration:
         c = self._descriptor_channels() if channels is None else channels
         dfield = field.with_descriptors((c.source, lambda P: trilinear_sample(c.values, c.grid, P)),
                                         self.options.warped_descriptor_weight)
-        seconds = c.seconds + time.perf_counter() - t if channels is not None else time.perf_counter() - t
+        seconds = time.perf_counter() - t + (c.seconds if channels is not None else 0.0)
         log.info("descriptor field: heat kernel signatures and the target's grid of %d nodes (%.2f s)",
                  c.grid.size, seconds)
         return dfield, int(c.grid.size), seconds

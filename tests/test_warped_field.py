@@ -289,7 +289,8 @@ def _objective_before(w):
 def test_hops_through_the_field_keep_only_a_lower_objective():
     """``warped_hops``: from the pass's kept result, the field minimized with all modes and
     refined on Eq. (3); a hop is kept only below ``warped_hop_ratio`` times the objective of the
-    result it left, the next starts from it, and the first not kept ends them. The pass before the hops is the pass without them."""
+    result it left, the next starts from it, and the first not kept ends them. The pass before
+    the hops is the pass without them."""
     source, target = _bent_pair()
     options = mm.RegistrationOptions(grid=24, modes=6, warped_descriptors=False)  # the descriptor hop: test_descriptors
     assert options.warped_hops == 1 and options.warped_hop_ratio == 0.99  # the defaults
