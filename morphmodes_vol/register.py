@@ -999,11 +999,11 @@ class Registration:
         """``field`` with the descriptor channels (``channels``, made by
         :meth:`_descriptor_channels` when not given). Returns the field, the node count of
         the target's descriptor grid and the seconds spent on both."""
-        t = time.perf_counter()
         c = self._descriptor_channels() if channels is None else channels
+        t = time.perf_counter()
         dfield = field.with_descriptors((c.source, lambda P: trilinear_sample(c.values, c.grid, P)),
                                         self.options.warped_descriptor_weight)
-        seconds = time.perf_counter() - t + (c.seconds if channels is not None else 0.0)
+        seconds = c.seconds + time.perf_counter() - t
         log.info("descriptor field: heat kernel signatures and the target's grid of %d nodes (%.2f s)",
                  c.grid.size, seconds)
         return dfield, int(c.grid.size), seconds
