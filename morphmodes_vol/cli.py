@@ -64,9 +64,10 @@ class ProgressPrinter:
 #: command-line flags whose destination is the :class:`RegistrationOptions` field of that name
 _SAME_NAMED_OPTIONS = ("target_grid", "max_iterations", "preconditioner", "quadrature", "target_backend",
                        "target_sign", "landmark_weight", "isometry_weight", "icp_start", "coarse_starts",
-                       "fine_pass", "warped_pass", "warped_candidates", "warped_choice", "warped_refine",
-                       "warped_prune_modes", "warped_prune_ratio", "warped_hops", "warped_hop_iterations",
-                       "warped_hop_ratio", "warped_descriptors", "warped_descriptor_weight")
+                       "fine_pass", "fine_merge", "warped_pass", "warped_candidates", "warped_choice",
+                       "warped_refine", "warped_prune_modes", "warped_prune_ratio", "warped_hops",
+                       "warped_hop_iterations", "warped_hop_ratio", "warped_descriptors",
+                       "warped_descriptor_weight")
 
 
 def _options_from_args(args) -> RegistrationOptions:
@@ -148,6 +149,10 @@ def _add_common(p: argparse.ArgumentParser, default_grid: int, default_modes: in
     p.add_argument("--fine-pass", action=argparse.BooleanOptionalAction, default=None,
                    help="with --coarse-starts, run the start kept on the coarse grid again on the "
                         "grid (default on; off keeps the coarse result and saves that run)")
+    p.add_argument("--fine-merge", action=argparse.BooleanOptionalAction, default=None,
+                   help="with --fine-pass, stop the fine run and keep the coarse result when the "
+                        "fine run comes within the merge distance of the coarse run at as many "
+                        "modes (default on; docs/method.md)")
     p.add_argument("--warped-pass", action=argparse.BooleanOptionalAction, default=None,
                    help="after the runs, minimize the rest source's distance field carried by the "
                         "subspace (no source queries) from every start, refine the best on the "

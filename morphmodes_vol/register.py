@@ -112,8 +112,9 @@ class RegistrationResult:
         full grid), after
         ``energy_after_modes`` modes (both ``None`` and ``energy`` NaN when it never was);
         its ``edge_strain`` when it ended or stopped; ``evaluations``; and
-        ``stopped_after_modes`` / ``stop_reason``, ``merged``, ``outstretched`` or
-        ``not chosen``, when it was stopped early; ``None`` otherwise); ``init_*`` and
+        ``stopped_after_modes`` / ``stop_reason``, ``merged``, ``outstretched``,
+        ``not chosen`` or, for the fine run, ``merged with the coarse run`` (``fine_merge``),
+        when it was stopped early; ``None`` otherwise); ``init_*`` and
         ``icp_*``: the two alignments (:meth:`InitialAlignment.summary`,
         :meth:`IcpAlignment.summary`). Cost: ``evaluations_all_starts`` (every run's
         source-SDF evaluations; ``coarse_evaluations_all_starts`` and
@@ -418,7 +419,7 @@ class Registration:
         return self._objectives[key]
 
     def _run_starts(self, starts, progress, energy=None, objective=None,
-                    judge: bool = True) -> list["_StartRun"]:
+                    judge: bool = True, follow: "_StartRun | None" = None) -> list["_StartRun"]:
         """Algorithm 1 from every start, advanced in lockstep one stage (mode) at a time.
 
         After each stage from ``start_check_modes`` on, a run stops early when another
@@ -438,7 +439,10 @@ class Registration:
         :meth:`_coarse_objective`, and the report names the grid accordingly). A run that
         ends is judged by :meth:`_objective` whatever ``objective`` is; ``judge=False`` (a
         lone run that nothing is chosen against) keeps its own final energy instead, on its
-        quadrature, and saves that evaluation.
+        quadrature, and saves that evaluation. ``follow``: the coarse run that a fine run
+        started like (``fine_merge``): every run stops once it is within
+        ``start_merge_distance`` of it at as many modes (:meth:`_merged_with`). Each run keeps
+        its coefficients after every stage (``_StartRun.path``) for such a comparison.
         """
         o = self.options
         live = []
@@ -455,6 +459,9 @@ class Registration:
             while live:
                 for r in live:
                     r.run.advance()
+                    r.path[r.run.stage] = r.run.T.copy()
+                    if follow is not None and not r.run.done:
+                        self._merged_with(r, follow)
                 going = [r for r in live if not r.run.done]
                 stage = going[0].run.stage if going else 0
                 if len(going) > 1 and stage >= o.start_check_modes:
@@ -483,6 +490,22 @@ class Registration:
             r.energy = self._comparable_energy(r.result)
             r.judged, r.energy_grid = r.run.stage, "fine"
         r.run = r.energy_term = r.vertices = r.objective = None
+
+    def _merged_with(self, r: "_StartRun", followed: "_StartRun") -> bool:
+        """``fine_merge``: whether the fine run ``r`` has come within ``start_merge_distance``
+        (RMS) of the coarse run ``followed`` at the same number of modes, from
+        ``start_check_modes`` on; marks it stopped (*merged with the coarse run*)."""
+        o = self.options
+        stage = r.run.stage
+        if stage < o.start_check_modes or stage not in followed.path:
+            return False
+        distance = _rms(self._state_of(r) - self.basis.deform(followed.path[stage]))
+        if not distance < o.start_merge_distance:
+            return False
+        r.stopped, r.reason = stage, "merged with the coarse run"
+        log.info("after %d modes the %s run stops: within %.3g (RMS) of the %s run at as many modes",
+                 stage, r.label, distance, followed.label)
+        return True
 
     def _state_of(self, r: "_StartRun") -> np.ndarray:
         """A running start's vertices ``(n, 3)`` now, its edge strain left in ``r.strain``;
@@ -794,8 +817,9 @@ class Registration:
             runs = self._run_starts(coarse, progress, self.coarse_energy, self._coarse_objective)
             kept = _select_start([r for r in runs if r.stopped is None], factor)
             if self.options.fine_pass:
-                runs += self._run_starts([starts[runs.index(kept)]], progress)  # runs keep the starts' order
-                chosen = _select_start([kept, runs[-1]], factor)
+                runs += self._run_starts([starts[runs.index(kept)]], progress,  # runs keep the starts' order
+                                         follow=kept if self.options.fine_merge else None)
+                chosen = kept if runs[-1].stopped is not None else _select_start([kept, runs[-1]], factor)
             else:
                 chosen = kept
         else:
@@ -1052,7 +1076,8 @@ class _WarpedFields:
 class _StartRun:
     """Algorithm 1 from one start: its result, SDF-query time, full-grid objective, edge
     strain; while it runs, its :class:`AdaptiveRun` and evaluator; ``stopped``: the modes after
-    which it was stopped early (``reason``: ``merged``, ``outstretched`` or ``not chosen``), else ``None``."""
+    which it was stopped early (``reason``: ``merged``, ``outstretched``, ``not chosen`` or ``merged
+    with the coarse run``), else ``None``."""
 
     label: str
     result: object
@@ -1069,6 +1094,7 @@ class _StartRun:
     objective: Callable[[np.ndarray], float] | None = None  # judged by while running (None: fine grid)
     points_queried: int = 0  # points its evaluator sent to the closest-point queries
     energy_grid: str | None = None  # where ``energy`` was computed: "fine", "coarse" (None: never)
+    path: dict = field(default_factory=dict)  # stage -> coefficients T (m, 3, 4) after it
 
 
 def _points_queried(energy) -> int:

@@ -118,6 +118,7 @@ def test_optimizer_flag_brings_its_quadrature_unless_given():
     assert not options("--no-coarse-starts").coarse_starts
     assert default.fine_pass == mm_options().fine_pass
     assert options("--fine-pass").fine_pass and not options("--no-fine-pass").fine_pass
+    assert default.fine_merge and not options("--no-fine-merge").fine_merge
     assert options("--optimizer", "paper", "--coarse-starts").coarse_starts
     # --fast is RegistrationOptions.fast() (a preset of four options), which the other flags override
     quick = options("--fast")

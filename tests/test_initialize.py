@@ -574,6 +574,69 @@ def test_without_the_fine_pass_the_coarse_pass_result_is_kept():
         mm.RegistrationOptions(fine_pass=1)
 
 
+def test_the_fine_run_stops_when_it_follows_the_coarse_run():
+    """``fine_merge``: the fine run stops, and the coarse pass's result is kept, once it is
+    within ``start_merge_distance`` of the coarse run at as many modes; the coarse pass is the
+    same either way, and without the rule the fine run runs to the end."""
+    X, F = asymmetric_blob()
+    Y = bend(X, 0.6, axis=2, towards=0) + [0.03, 0.0, 0.0]
+    opts = mm.RegistrationOptions(grid=48, modes=5, start_check_modes=2, warped_pass=False)
+    assert opts.fine_merge  # the default
+    merged = mm.register((X, F), (Y, F), opts)
+    whole = mm.register((X, F), (Y, F), opts.replace(fine_merge=False))
+    never = mm.register((X, F), (Y, F), opts.replace(start_merge_distance=0.0))
+    *coarse, fine = merged.metrics["starts"]
+    # this pair's fine run follows its coarse run from the first check on
+    assert fine["stop_reason"] == "merged with the coarse run"
+    assert fine["stopped_after_modes"] == opts.start_check_modes
+    kept = next(s for s in coarse if s["stopped_after_modes"] is None)
+    assert fine["start"] + " (coarse)" == kept["start"] == merged.metrics["start"]
+    assert [(s["start"], s["evaluations"]) for s in whole.metrics["starts"][:-1]] == \
+        [(s["start"], s["evaluations"]) for s in coarse]
+    last = whole.metrics["starts"][-1]
+    assert last["start"] == fine["start"] and last["stopped_after_modes"] is None
+    assert last["evaluations"] > fine["evaluations"]
+    assert whole.evaluations - merged.evaluations == last["evaluations"] - fine["evaluations"]
+    # a merge distance of 0 merges nothing (the coarse starts run on too)
+    assert all(s["stop_reason"] != "merged with the coarse run" for s in never.metrics["starts"])
+    with pytest.raises(mm.OptionError, match="fine_merge"):
+        mm.RegistrationOptions(fine_merge="yes")
+
+
+def test_the_fine_run_merges_below_the_distance_from_the_check_on():
+    """``Registration._merged_with`` by hand: a fine run whose vertices are the followed
+    run's moved by a translation ``t`` (mode 0 is constant: ``T_0`` gains ``t / w_0``) is at
+    RMS distance ``|t|``; it merges when that is below ``start_merge_distance``, from
+    ``start_check_modes`` modes on, at a number of modes the followed run reached."""
+    from types import SimpleNamespace
+
+    from morphmodes_vol.register import _StartRun
+
+    X, F = asymmetric_blob()
+    opts = mm.RegistrationOptions(grid=24, modes=4, start_check_modes=2, start_merge_distance=0.005)
+    reg = mm.Registration((X, F), (X + [0.02, 0.0, 0.0], F), opts)
+    rng = np.random.default_rng(3)
+    Ta = 0.01 * rng.standard_normal((2, 3, 4))
+    followed = _StartRun("aligned (coarse)", None, 0.0, 0.0, 0.0, path={1: Ta[:1], 2: Ta})
+
+    def fine_at(stage, t):
+        Tb = Ta[:stage].copy()
+        Tb[0, :, 3] += np.asarray(t) / reg.weights[0, 0]
+        run = SimpleNamespace(stage=stage, vertices=reg.basis.deform(Tb))
+        return _StartRun("aligned", None, 0.0, 0.0, 0.0, run=run)
+
+    near = fine_at(2, [0.0, 0.003, 0.0041])  # |t| = 0.00508
+    assert np.isclose(np.sqrt(np.mean(np.sum((near.run.vertices - reg.basis.deform(Ta)) ** 2, 1))), 0.00508,
+                      rtol=1e-3)
+    assert not reg._merged_with(near, followed) and near.stopped is None
+    inside = fine_at(2, [0.0, 0.003, 0.0039])  # |t| = 0.00492
+    assert reg._merged_with(inside, followed)
+    assert (inside.stopped, inside.reason) == (2, "merged with the coarse run")
+    assert not reg._merged_with(fine_at(1, [0.0, 0.0, 0.0]), followed)  # before the check
+    beyond = fine_at(2, [0.0, 0.0, 0.0])
+    assert not reg._merged_with(beyond, _StartRun("x", None, 0.0, 0.0, 0.0, path={1: Ta[:1]}))
+
+
 def test_the_fast_setting_is_the_defaults_without_the_fine_run_and_the_other_orientations():
     """``RegistrationOptions.fast()``: the defaults but ``grid``, ``fine_pass``,
     ``warped_candidates`` and ``icp_start``; a registration with it has the coarse runs from
