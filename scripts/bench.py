@@ -4,6 +4,7 @@ settings) against trimesh's non-rigid ICP (Amberg et al. 2007, ``trimesh.registr
 in one run, on the same machine.
 
     python scripts/bench.py [--pairs 05 01] [--out results/bench] [--set grid=64 ...]
+    python scripts/bench.py --targets-only --out DIR   # the targets of a run already in DIR
     make bench
 
 Pairs: lion-reference onto lion-05 and lion-01 from ``../shared/data`` (or
@@ -15,7 +16,10 @@ for ours; loading and the registration call for NRICP. The libraries each method
 imported before its clock starts (``_import_libraries``; Open3D's import alone takes about
 0.4 s here): a per-process cost, paid once by a script that registers many pairs.
 
-Prints a markdown table and writes ``<out>/bench.json`` and ``<out>/bench.md``.
+Prints a markdown table, then where each pair stands against the issue-6 targets the run
+can measure (:func:`targets`: the default's wall time against a third of NRICP's, and its
+full-grid equivalents against a tenth of the paper-faithful optimizer's at no higher error),
+and writes ``<out>/bench.json`` and ``<out>/bench.md``.
 """
 
 from __future__ import annotations
@@ -179,6 +183,95 @@ def _row(pair: str, method: str, r: dict, nricp_wall: float | None) -> str:
             f"{r['peak_rss_mb']:.0f} |")
 
 
+TIME_RATIO = 1.0 / 3.0  # issue 6: the default's wall time at most a third of NRICP's
+EVALUATION_FACTOR = 10.0  # issue 6: at least 10x fewer full evaluations than the paper's optimizer
+
+
+def targets(results: dict) -> dict:
+    """Where one pair's run stands against the issue-6 targets it can measure.
+
+    Parameters
+    ----------
+    results : dict
+        Method label (``"ours, default"``, ``"ours, --optimizer paper"``, ``"trimesh
+        nricp_amberg"``) -> its result (``wall_s``, ``error``, ``full_grid_equivalents``).
+
+    Returns
+    -------
+    dict
+        ``"wall_time"``: the default's wall time over NRICP's (``ratio``), ``met`` when at
+        most :data:`TIME_RATIO` and its error is no higher than the paper-faithful
+        optimizer's (when that ran; the target asks both); ``"evaluations"``: the paper's
+        full-grid equivalents over the default's (``factor``), ``met`` when at least
+        :data:`EVALUATION_FACTOR` at no higher error. A target whose methods did not run is
+        left out.
+
+    Examples
+    --------
+    >>> t = targets({"ours, default": {"wall_s": 3.0, "error": 0.01, "full_grid_equivalents": 40.0},
+    ...              "trimesh nricp_amberg": {"wall_s": 9.0, "error": 0.2},
+    ...              "ours, --optimizer paper": {"wall_s": 300.0, "error": 0.3, "full_grid_equivalents": 400.0}})
+    >>> t["wall_time"]["met"], t["evaluations"]["factor"], t["evaluations"]["met"]
+    (True, 10.0, True)
+    """
+    ours, nricp = results.get("ours, default"), results.get("trimesh nricp_amberg")
+    paper = results.get("ours, --optimizer paper")
+    out = {}
+    no_worse = paper is None or ours is None or ours["error"] <= paper["error"]
+    if ours and nricp:
+        ratio = ours["wall_s"] / nricp["wall_s"]
+        out["wall_time"] = {"ratio": ratio, "target": TIME_RATIO, "met": bool(ratio <= TIME_RATIO and no_worse)}
+    if ours and paper and ours.get("full_grid_equivalents") and paper.get("full_grid_equivalents"):
+        factor = paper["full_grid_equivalents"] / ours["full_grid_equivalents"]
+        out["evaluations"] = {"factor": factor, "target": EVALUATION_FACTOR,
+                              "met": bool(factor >= EVALUATION_FACTOR and no_worse)}
+    return out
+
+
+def _target_line(pair: str, t: dict, results: dict) -> str | None:
+    parts = []
+    ours, paper = results.get("ours, default"), results.get("ours, --optimizer paper")
+    if "wall_time" in t:
+        w = t["wall_time"]
+        parts.append(f"wall time {w['ratio']:.2f}x NRICP's (at most {w['target']:.2f}x): "
+                     f"**{'met' if w['met'] else 'not met'}**")
+    if "evaluations" in t:
+        e = t["evaluations"]
+        parts.append(f"full-grid equivalents {ours['full_grid_equivalents']:.1f} against the paper-faithful "
+                     f"optimizer's {paper['full_grid_equivalents']:.1f}, {e['factor']:.1f}x fewer (at least "
+                     f"{e['target']:.0f}x), error {ours['error']:.4f} against {paper['error']:.4f}: "
+                     f"**{'met' if e['met'] else 'not met'}**")
+    return f"- issue-6 targets, {pair}: " + "; ".join(parts) if parts else None
+
+
+def _targets_only(out: Path) -> int:
+    """``--targets-only``: the target lines of the run saved in ``out``, without running it
+    again (the table of ``bench.md`` is kept; target lines already there are replaced)."""
+    path = out / "bench.json"
+    if not path.is_file():
+        print(f"no benchmark in {out}: {path} is missing", file=sys.stderr)
+        return 2
+    report = json.loads(path.read_text())
+    by_pair: dict = {}
+    for r in report["results"]:
+        by_pair.setdefault(r["pair"], {})[r["method"]] = r
+    report["targets"], target_lines = {}, []
+    for pair, results in by_pair.items():
+        t = targets(results)
+        if t:
+            report["targets"][pair] = t
+            target_lines.append(_target_line(pair, t, results))
+    print("\n".join(target_lines) if target_lines else "no pair ran the methods a target compares")
+    path.write_text(json.dumps(report, indent=2, default=str))
+    md = out / "bench.md"
+    table = [line for line in (md.read_text().splitlines() if md.is_file() else [])
+             if not line.startswith("- issue-6 targets")]
+    while table and not table[-1]:
+        table.pop()
+    md.write_text("\n".join(table + ([""] + target_lines if target_lines else [])) + "\n")
+    return 0
+
+
 HEADER = ("| pair | method | identity error | error | wall s | / NRICP | SDF evals | full-grid equivalents "
           "| ms / eval | SDF share | preprocess / target SDF / eigenbasis / initialize / optimize / export (s) "
           "| peak RSS MB |\n|---|---|---|---|---|---|---|---|---|---|---|---|")
@@ -199,7 +292,12 @@ def main() -> int:
                          "no-warped: --no-warped-pass and two-way: "
                          "--two-way (not run unless named); lm: --init none --no-coarse-starts "
                          "(one run from the rest pose); paper: RegistrationOptions.paper_faithful(); nricp: trimesh")
+    ap.add_argument("--targets-only", action="store_true",
+                    help="run nothing: read <out>/bench.json, print where each pair stands against the "
+                         "issue-6 targets and add it to it and to <out>/bench.md")
     args = ap.parse_args()
+    if args.targets_only:
+        return _targets_only(Path(args.out))
     overrides = parse_overrides(args.set)
 
     out = Path(args.out)
@@ -207,7 +305,7 @@ def main() -> int:
     report = {"machine": {"python": platform.python_version(), "cpus": mp.cpu_count(),
                           "platform": platform.platform()},
               "overrides": overrides, "results": []}
-    lines = [HEADER]
+    lines, target_lines = [HEADER], []
     print(HEADER, flush=True)
     for name, source, target in pairs(args.pairs):
         results = {}
@@ -242,6 +340,13 @@ def main() -> int:
             lines.append(line)
             print(line, flush=True)
             report["results"].append({"pair": name, "method": method, **r})
+        t = targets(results)
+        if t:
+            report.setdefault("targets", {})[name] = t
+            target_lines.append(_target_line(name, t, results))
+    if target_lines:
+        print("\n" + "\n".join(target_lines), flush=True)
+        lines += [""] + target_lines
     (out / "bench.json").write_text(json.dumps(report, indent=2, default=str))
     (out / "bench.md").write_text("\n".join(lines) + "\n")
     print(f"wrote {out / 'bench.json'} and {out / 'bench.md'}")
