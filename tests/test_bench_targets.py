@@ -52,6 +52,9 @@ def test_targets_whose_methods_did_not_run_are_left_out(bench):
     line = bench._target_line("p", bench.targets(full), full)
     assert line.startswith("- issue-6 targets, p: wall time 0.24x") and line.count("**met**") == 2
     assert bench._target_line("p", {}, {}) is None
+    # with options set, the line says the run is not of the default settings
+    assert bench._target_line("p", bench.targets(full), full, {"grid": 48}).endswith(
+        "; ours ran with --set grid=48, not the default settings")
 
 
 def test_targets_only_reads_a_saved_run(bench, tmp_path, monkeypatch, capsys):
