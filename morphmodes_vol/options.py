@@ -203,7 +203,7 @@ class RegistrationOptions:
         With ``warped_pass``: make the descriptor channels (beside the initialization), then
         minimize the warped rest field from the starts (numpy, no source query), on a second
         thread while Algorithm 1 runs from them, instead of after it. The same results but
-        for the last bits of some BLAS products (bit for bit on the test pair; on the
+        for the last bits of some BLAS products (usually bit for bit on the test pair; on the
         accuracy study one error of 30 moved, by 0.3%); ``True`` (default) is faster with two
         cores or more: lion-05 26.6 s against 30.6 (docs/method.md, "The warped rest field
         beside the runs").
