@@ -247,6 +247,15 @@ def _target_line(pair: str, t: dict, results: dict, overrides: dict | None = Non
     return f"- issue-6 targets, {pair}: " + "; ".join(parts) if parts else None
 
 
+def _add_targets(report: dict, pair: str, results: dict, lines: list[str]) -> None:
+    """One pair's :func:`targets`, into ``report["targets"]`` and, as a line, onto ``lines``
+    (nothing when no target's methods ran)."""
+    t = targets(results)
+    if t:
+        report.setdefault("targets", {})[pair] = t
+        lines.append(_target_line(pair, t, results, report.get("overrides")))
+
+
 def _targets_only(out: Path) -> int:
     """``--targets-only``: the target lines of the run saved in ``out``, without running it
     again (the table of ``bench.md`` is kept; target lines already there are replaced)."""
@@ -260,10 +269,7 @@ def _targets_only(out: Path) -> int:
         by_pair.setdefault(r["pair"], {})[r["method"]] = r
     report["targets"], target_lines = {}, []
     for pair, results in by_pair.items():
-        t = targets(results)
-        if t:
-            report["targets"][pair] = t
-            target_lines.append(_target_line(pair, t, results, report.get("overrides")))
+        _add_targets(report, pair, results, target_lines)
     print("\n".join(target_lines) if target_lines else "no pair ran the methods a target compares")
     path.write_text(json.dumps(report, indent=2, default=str))
     md = out / "bench.md"
@@ -343,10 +349,7 @@ def main() -> int:
             lines.append(line)
             print(line, flush=True)
             report["results"].append({"pair": name, "method": method, **r})
-        t = targets(results)
-        if t:
-            report.setdefault("targets", {})[name] = t
-            target_lines.append(_target_line(name, t, results, overrides))
+        _add_targets(report, name, results, target_lines)
     if target_lines:
         print("\n" + "\n".join(target_lines), flush=True)
         lines += [""] + target_lines

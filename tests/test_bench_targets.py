@@ -2,6 +2,7 @@
 runs the registrations; only its arithmetic is tested here)."""
 
 import importlib.util
+import json
 from pathlib import Path
 
 import pytest
@@ -60,7 +61,6 @@ def test_targets_whose_methods_did_not_run_are_left_out(bench):
 def test_targets_only_reads_a_saved_run(bench, tmp_path, monkeypatch, capsys):
     """``--targets-only``: nothing runs; the targets of the saved run are printed and added to
     ``bench.json`` and ``bench.md``, once however often it is asked."""
-    import json
     rows = [{"pair": "p", "method": m, **r} for m, r in _results().items()]
     (tmp_path / "bench.json").write_text(json.dumps({"results": rows}))
     (tmp_path / "bench.md").write_text("| table |\n|---|\n")
