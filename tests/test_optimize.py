@@ -1,5 +1,7 @@
 """Line search and options: hand-checked cases."""
 
+from contextlib import contextmanager
+
 import numpy as np
 import pytest
 
@@ -44,3 +46,97 @@ def test_options_replace_names_unknown_fields():
     with pytest.raises(OptionError, match="gird"):
         RegistrationOptions().replace(gird=3)
     assert RegistrationOptions().replace(grid=32).grid == 32
+
+
+
+def _blas_threads():
+    from threadpoolctl import threadpool_info
+
+    return min(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
+
+
+@contextmanager
+def _two_blas_threads():
+    """BLAS on two threads, with no thread holding threadpoolctl's control of it (>= 3.8),
+    as in a process that set no limit; then as it was."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    from morphmodes_vol.optimize.adaptive import _release_blas_control
+
+    if not any(i["user_api"] == "blas" for i in threadpool_info()):
+        pytest.skip("no BLAS thread pool that threadpoolctl can see")
+    limiter = threadpool_limits(limits=2, user_api="blas")
+    _release_blas_control()
+    try:
+        if _blas_threads() < 2:
+            pytest.skip("this BLAS does not take two threads")
+        yield
+    finally:
+        limiter.restore_original_limits()
+        _release_blas_control()
+
+
+def test_blas_limit_is_restored_when_two_threads_overlap():
+    """Two threads' contexts overlapping (A enters, B enters, A leaves, B leaves): BLAS stays
+    on one thread until the last one leaves, and is then as before the first came in. A
+    context per thread gives B every thread once A has left, and then restores the limit of
+    1 that B found (measured with threadpoolctl 3.8)."""
+    import threading
+
+    from morphmodes_vol.optimize import single_threaded_blas
+
+    with _two_blas_threads():
+        a_in, b_in, a_out = threading.Event(), threading.Event(), threading.Event()
+        seen = {}
+
+        def a():
+            with single_threaded_blas():
+                seen["a"] = _blas_threads()
+                a_in.set()
+                b_in.wait(10)
+            a_out.set()
+
+        def b():
+            a_in.wait(10)
+            with single_threaded_blas():
+                b_in.set()
+                a_out.wait(10)
+                seen["b alone"] = _blas_threads()
+
+        threads = [threading.Thread(target=a), threading.Thread(target=b)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(20)
+        assert a_out.is_set() and seen == {"a": 1, "b alone": 1}
+        assert _blas_threads() == 2
+
+
+def test_blas_limit_nested_in_one_thread():
+    """Nested contexts in one thread: one thread inside both, two again after both."""
+    from morphmodes_vol.optimize import single_threaded_blas
+
+    with _two_blas_threads():
+        with single_threaded_blas():
+            with single_threaded_blas():
+                assert _blas_threads() == 1
+            assert _blas_threads() == 1
+        assert _blas_threads() == 2
+
+
+def test_registrations_on_two_threads_leave_blas_as_they_found_it():
+    """The user's case: registrations run on a thread pool. Afterwards BLAS has the threads it
+    had before (with a context per thread, overlapping runs could leave it on one)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    import morphmodes_vol as mm
+    from morphmodes_vol.primitives import capsule
+
+    X, F = capsule()
+    Y = X * np.array([1.2, 0.9, 1.0])
+    options = RegistrationOptions(grid=16, modes=3, initialization="none", warped_pass=False)
+    with _two_blas_threads():
+        with ThreadPoolExecutor(2) as pool:
+            results = list(pool.map(lambda _: mm.register((X, F), (Y, F), options), range(4)))
+        assert _blas_threads() == 2
+    assert all(np.isfinite(r.vertices).all() for r in results)
