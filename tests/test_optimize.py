@@ -1,4 +1,4 @@
-"""Line search and options: hand-checked cases."""
+"""Line search, options and the BLAS thread limit: hand-checked cases."""
 
 from contextlib import contextmanager
 
@@ -46,7 +46,6 @@ def test_options_replace_names_unknown_fields():
     with pytest.raises(OptionError, match="gird"):
         RegistrationOptions().replace(gird=3)
     assert RegistrationOptions().replace(grid=32).grid == 32
-
 
 
 def _blas_threads():
