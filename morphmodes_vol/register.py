@@ -11,7 +11,6 @@ import logging
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
 from typing import Callable
 
@@ -19,6 +18,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import ArpackError
 
+from .blas import single_threaded_blas
 from .descriptors import heat_kernel_signature, surface_descriptor_grid
 from .eigenbasis import LBSBasis, mesh_skinning_weights, to_paper_z
 from .energy import SDFEnergy
@@ -32,7 +32,7 @@ from .metrics import edge_strain, ground_truth_error, shape_metrics
 from .options import RegistrationOptions
 from .quadrature import BandEnergy, CoarseToFine, every_other_node
 from .repair import sdf_faces
-from .optimize import AdaptiveRun, OptimizationHistory, ProgressEvent, single_threaded_blas
+from .optimize import AdaptiveRun, OptimizationHistory, ProgressEvent
 from .sdf import Grid, TargetSDF, build_target_sdf, closest_points, is_target_sdf_path, load_target_sdf
 from .sdf.grid import trilinear_sample
 from .stages import SourceEigenbasis, TargetField
@@ -588,10 +588,11 @@ class Registration:
         # the warped pass's field runs need nothing from the runs of Algorithm 1, and its
         # descriptor channels nothing but the two meshes: on a second core they go on beside
         # the initialization and the runs (numpy, no source queries; the same results as one
-        # after the other)
+        # after the other). BLAS runs on one thread throughout (morphmodes_vol.blas), so the
+        # result does not depend on how many it would have.
         overlap = (ThreadPoolExecutor(1, thread_name_prefix="warped-field")
                    if self.options.warped_pass and self.options.overlap_field else None)
-        with single_threaded_blas() if overlap is not None else nullcontext():
+        with single_threaded_blas():
             try:
                 channels = (overlap.submit(self._descriptor_channels_or_error)
                             if overlap is not None and self.options.warped_descriptors and self.Y is not None

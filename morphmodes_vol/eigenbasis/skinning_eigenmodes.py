@@ -9,6 +9,7 @@ import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from ..blas import single_threaded_blas
 from ..errors import MeshValidationError, OptionError
 from ..mesh import validate_mesh
 from .cotangent_laplacian import cotangent_laplacian
@@ -72,17 +73,21 @@ def skinning_eigenmodes(V, F, modes: int, seed: int = 0) -> tuple[np.ndarray, np
             "(zero or non-finite mass / cotangent weights); mesh_skinning_weights cleans them"
         )
 
-    if n <= _DENSE_LIMIT or modes >= n - 1:
-        lam, W = scipy.linalg.eigh(L.toarray(), np.diag(mass), subset_by_index=[0, modes - 1])
-    else:
-        scale = float(np.mean(L.diagonal()) / np.mean(mass))
-        sigma = -1e-6 * scale
-        rng = np.random.default_rng(seed)
-        v0 = rng.standard_normal(n)
-        lam, W = spla.eigsh(L, k=modes, M=M, sigma=sigma, which="LM", v0=v0)
-    order = np.argsort(lam)
-    lam, W = lam[order], W[:, order]
-    W = _normalize(W, mass)
+    # BLAS on one thread: within a repeated eigenvalue's space (a symmetric mesh) the
+    # eigenvectors depend on the last bits of its sums, so on more threads they changed with
+    # the thread count (morphmodes_vol.blas)
+    with single_threaded_blas():
+        if n <= _DENSE_LIMIT or modes >= n - 1:
+            lam, W = scipy.linalg.eigh(L.toarray(), np.diag(mass), subset_by_index=[0, modes - 1])
+        else:
+            scale = float(np.mean(L.diagonal()) / np.mean(mass))
+            sigma = -1e-6 * scale
+            rng = np.random.default_rng(seed)
+            v0 = rng.standard_normal(n)
+            lam, W = spla.eigsh(L, k=modes, M=M, sigma=sigma, which="LM", v0=v0)
+        order = np.argsort(lam)
+        lam, W = lam[order], W[:, order]
+        W = _normalize(W, mass)
     lam = np.maximum(lam, 0.0)
     lam[0] = 0.0
     log.debug("skinning eigenmodes: n=%d modes=%d largest eigenvalue %.4g", n, modes, lam[-1])

@@ -20,15 +20,13 @@ Two steps share this schedule:
 from __future__ import annotations
 
 import logging
-import threading
 import time
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Callable, Literal
 
 import numpy as np
-from threadpoolctl import OpenBLASController, threadpool_limits
 
+from ..blas import single_threaded_blas
 from ..eigenbasis.lbs import LBSBasis
 from ..energy import EnergyEvaluation, SDFEnergy
 from ..errors import OptionError
@@ -356,53 +354,6 @@ def optimize_adaptive(
         while not run.done:
             run.advance()
         return run.result()
-
-
-_blas_lock = threading.Lock()
-_blas_users = 0
-_blas_limiter = None
-
-
-def _release_blas_control() -> None:
-    """threadpoolctl >= 3.8 lets one thread at a time set OpenBLAS's process-wide pool (the
-    others' calls do nothing): give that control back if this thread holds it, so that
-    whichever thread leaves last can restore the limit."""
-    release = getattr(OpenBLASController, "clear_controlling_thread", None)
-    if release is not None:
-        release()
-
-
-@contextmanager
-def single_threaded_blas():
-    """Context in which BLAS runs on one thread.
-
-    The products of Algorithm 1 are small (at most n x 4m and 12m x 12m): a multithreaded
-    BLAS only adds wake-up costs, which are pathological on a busy machine (0.23 s instead
-    of 0.002 s for one 80 x 5000 x 80 product, measured with 2 cores under load).
-
-    BLAS's thread count belongs to the process, not to the calling thread. So the contexts
-    of all threads count as one: the first to enter limits it, the last to leave restores
-    what the first found, whichever threads those are. With ``threadpool_limits`` alone,
-    registrations run from two threads at once that overlap (A enters, B enters, A leaves,
-    B leaves) let B run its remaining steps with every BLAS thread, and then restore the
-    limit of 1 that B found, leaving BLAS on one thread for the rest of the process.
-    A limit that another thread holds (threadpoolctl >= 3.8) is left alone.
-    """
-    global _blas_users, _blas_limiter
-    with _blas_lock:
-        if _blas_users == 0:
-            _blas_limiter = threadpool_limits(limits=1, user_api="blas")
-            _release_blas_control()
-        _blas_users += 1
-    try:
-        yield
-    finally:
-        with _blas_lock:
-            _blas_users -= 1
-            if _blas_users == 0:
-                _blas_limiter.restore_original_limits()
-                _release_blas_control()
-                _blas_limiter = None
 
 
 class AdaptiveRun:
