@@ -123,29 +123,12 @@ def test_blas_limit_nested_in_one_thread():
         assert _blas_threads() == 2
 
 
-def test_registrations_on_two_threads_leave_blas_as_they_found_it():
+def test_registrations_on_a_thread_pool():
     """The user's case: registrations (each with its warped field's thread) run on a thread
     pool. Afterwards BLAS has the threads it had before (with a context per thread,
-    overlapping runs could leave it on one)."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    import morphmodes_vol as mm
-    from morphmodes_vol.primitives import capsule
-
-    X, F = capsule()
-    Y = X * np.array([1.2, 0.9, 1.0])
-    options = RegistrationOptions(grid=16, modes=3, initialization="none")
-    with _two_blas_threads():
-        with ThreadPoolExecutor(2) as pool:
-            results = list(pool.map(lambda _: mm.register((X, F), (Y, F), options), range(4)))
-        assert _blas_threads() == 2
-    assert all(np.isfinite(r.vertices).all() for r in results)
-
-
-def test_registrations_on_a_thread_pool_give_the_result_of_one_alone():
-    """Registrations at once on a thread pool share no state: each gives what one alone
-    gives, the same evaluations and vertices (BLAS on one thread inside each, whatever the
-    others are doing)."""
+    overlapping runs could leave it on one); and they share no state: each gives what one
+    alone gives, the same evaluations and vertices (BLAS on one thread inside each, whatever
+    the others are doing)."""
     from concurrent.futures import ThreadPoolExecutor
 
     import morphmodes_vol as mm
@@ -158,7 +141,8 @@ def test_registrations_on_a_thread_pool_give_the_result_of_one_alone():
         alone = mm.register((X, F), (Y, F), options)
         with ThreadPoolExecutor(2) as pool:
             results = list(pool.map(lambda _: mm.register((X, F), (Y, F), options), range(4)))
-    assert alone.evaluations > 0
+        assert _blas_threads() == 2
+    assert alone.evaluations > 0 and np.isfinite(alone.vertices).all()
     for r in results:
         assert r.evaluations == alone.evaluations
         np.testing.assert_array_equal(r.vertices, alone.vertices)
