@@ -119,6 +119,28 @@ def test_normal_matrix_is_the_jacobian_product(lumpy_sphere, rng, tolerance):
     assert np.linalg.eigvalsh(got).min() > -1e-9 * np.abs(got).max()
 
 
+def test_normal_matrix_on_the_active_edges_is_the_vertex_blocks_one(lumpy_sphere, rng):
+    """Identity: ``term_normal_matrix`` (the products on the edges beyond the tolerance only)
+    equals the vertex blocks' matrix in the subspace, with some edges beyond the tolerance,
+    with all of them, and with none (the rest pose: the zero matrix)."""
+    V, F = lumpy_sphere
+    m = 3
+    W, _ = skinning_eigenmodes(V, F, m)
+    basis = LBSBasis(V, W)
+    inner = _energy_for(V, F, V * 1.1, resolution=8)
+    for tolerance, scale in ((0.05, 0.05), (0.0, 0.05), (0.05, 0.0)):
+        E = IsometryEnergy(inner, V, F, weight=0.4, volume=1.5, tolerance=tolerance)
+        X = basis.deform(scale * rng.standard_normal((m, 3, 4)))
+        active = E._stretch(X)[1]
+        want = E.term_vertex_blocks(X).subspace(basis, m)
+        got = E.term_normal_matrix(basis, m, X)
+        np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12 * max(np.abs(want).max(), 1.0))
+        if scale == 0.0:
+            assert not active.any() and not got.any()
+        else:
+            assert active.any()
+
+
 def test_composes_with_landmarks(lumpy_sphere, rng):
     V, F = lumpy_sphere
     m = 2
