@@ -32,7 +32,7 @@ Initialization = Literal["none", "rigid", "similarity"]
 INITIALIZATIONS = typing.get_args(Initialization)
 WarpedChoice = Literal["objective", "field", "both"]
 WARPED_CHOICES = typing.get_args(WarpedChoice)
-Preset = Literal["default", "fast", "paper"]
+Preset = Literal["default", "fast", "fastest", "paper"]
 PRESETS = typing.get_args(Preset)
 
 
@@ -261,6 +261,13 @@ class RegistrationOptions:
         0.0329 (three starts), at 19.9 s per pair against 12.8, and to 0.0279 with the
         defaults of ``warped_candidates`` and ``warped_choice`` (24.3 s). ``False``: the
         runs only (off in :meth:`paper_faithful`).
+    field_only : bool
+        With ``warped_pass``: no run of Algorithm 1 on Eq. (3) from the starts; the warped
+        rest field alone is minimized from them, and the result of lowest field energy is
+        refined on Eq. (3) (``warped_polish_iterations`` steps) and kept, then hopped from
+        as ``warped_hops`` and ``warped_descriptors`` ask. The fastest setting
+        (:meth:`fastest`) turns it on: the runs are most of the defaults' time (docs/method.md,
+        "The fastest setting"). ``False`` (default).
     warped_band_cells : float
         The warped rest field's band: grid nodes (the quadrature's spacing) within this many
         spacings of the rest surface.
@@ -411,6 +418,7 @@ class RegistrationOptions:
     isometry_weight: float = 3e-4
     isometry_tolerance: float = 0.2
     warped_pass: bool = True
+    field_only: bool = False
     warped_band_cells: float = 2.0
     warped_iterations_per_stage: int = 3
     warped_polish_iterations: int = 30
@@ -451,10 +459,21 @@ class RegistrationOptions:
         return cls(grid=48, fine_pass=False, warped_candidates=False, icp_start=False)
 
     @classmethod
+    def fastest(cls) -> "RegistrationOptions":
+        """The fastest setting (issue 6): the warped rest field alone from the rest pose and the
+        SDF alignment (``field_only``: no run of Algorithm 1 on Eq. 3 from them), its result of
+        lowest field energy refined on Eq. (3), on the defaults' grid of 64; no start from
+        rigid ICP or from the initialization's other orientations, no hop
+        (``warped_hops=0``, ``warped_descriptors=False``). docs/method.md, "The fastest
+        setting", has its accuracy and time against the defaults and NRICP."""
+        return cls(field_only=True, icp_start=False, warped_candidates=False, warped_hops=0,
+                   warped_descriptors=False)
+
+    @classmethod
     def preset(cls, name: Preset) -> "RegistrationOptions":
         """The options of a named setting: ``"default"`` (``RegistrationOptions()``),
-        ``"fast"`` (:meth:`fast`) or ``"paper"`` (:meth:`paper_faithful`); ``replace`` then
-        changes any field.
+        ``"fast"`` (:meth:`fast`), ``"fastest"`` (:meth:`fastest`) or ``"paper"``
+        (:meth:`paper_faithful`); ``replace`` then changes any field.
 
         Examples
         --------
@@ -463,7 +482,7 @@ class RegistrationOptions:
         """
         if name not in PRESETS:
             raise OptionError(f"preset {name!r} is unknown: expected one of {PRESETS}")
-        return {"default": cls, "fast": cls.fast, "paper": cls.paper_faithful}[name]()
+        return {"default": cls, "fast": cls.fast, "fastest": cls.fastest, "paper": cls.paper_faithful}[name]()
 
     def __post_init__(self) -> None:
         def need(cond: bool, name: str, what: str) -> None:
@@ -538,6 +557,9 @@ class RegistrationOptions:
         need(isinstance(self.fine_merge, bool), "fine_merge", "True or False")
         need(isinstance(self.overlap_field, bool), "overlap_field", "True or False")
         need(isinstance(self.warped_pass, bool), "warped_pass", "True or False")
+        need(isinstance(self.field_only, bool), "field_only", "True or False")
+        need(self.warped_pass or not self.field_only, "field_only",
+             "False without warped_pass (the warped rest field is what field_only minimizes)")
         need(self.warped_band_cells > 0, "warped_band_cells", "a positive float")
         need(_is_int(self.warped_iterations_per_stage) and self.warped_iterations_per_stage >= 1,
              "warped_iterations_per_stage", "a positive integer")

@@ -590,8 +590,11 @@ class Registration:
         # the initialization and the runs (numpy, no source queries; the same results as one
         # after the other). BLAS runs on one thread throughout (morphmodes_vol.blas), so the
         # result does not depend on how many it would have.
+        # (field_only: no runs to go beside, so no second thread)
         overlap = (ThreadPoolExecutor(1, thread_name_prefix="warped-field")
-                   if self.options.warped_pass and self.options.overlap_field else None)
+                   if self.options.warped_pass and self.options.overlap_field and not self.options.field_only
+                   else None)
+        fields = None
         with single_threaded_blas():
             try:
                 channels = (overlap.submit(self._descriptor_channels_or_error)
@@ -601,7 +604,7 @@ class Registration:
                 fields = (overlap.submit(self._warped_fields, starts, candidates, channels)
                           if overlap is not None else None)
                 t = time.perf_counter()
-                chosen, runs = self._passes(starts, progress)
+                chosen, runs = (None, []) if self.options.field_only else self._passes(starts, progress)
             finally:
                 if overlap is not None:
                     overlap.shutdown(wait=True)
@@ -924,16 +927,20 @@ class Registration:
                 chosen += _ascending({k: values[k] for k in start_labels if k in values})[:1]
         chosen = list(dict.fromkeys(chosen))
         options = o.replace(initial_modes=o.modes, lm_final_iterations=o.warped_polish_iterations)
-        runs = [self._run_starts([(WARPED_PREFIX + label, results[label].T, options)], progress)[0]
+        # a refined result is judged by the objective on the full grid when something is
+        # compared with it: the runs' result, another refined one, a hop
+        judge = (forward is not None or len(chosen) > 1 or o.warped_hops > 0
+                 or (o.warped_descriptors and self.Y is not None))
+        runs = [self._run_starts([(WARPED_PREFIX + label, results[label].T, options)], progress, judge=judge)[0]
                 for label in chosen]
-        forward_energy = (forward.energy if forward.energy_grid == "fine"
+        forward_energy = (None if forward is None else forward.energy if forward.energy_grid == "fine"
                           else self._objective(forward.result.vertices))
-        compared = {forward.label: forward_energy, **{r.label: r.energy for r in runs}}
+        ran = {} if forward is None else {forward.label: forward_energy}  # field_only: no runs
+        compared = {**ran, **{r.label: r.energy for r in runs}}
         # the orientation prior, as the initialization's (init_switch): a result from another
         # orientation is kept only when its objective is below warped_candidate_ratio times
         # every result from the starts' (a shape with a symmetry ties across orientations)
-        own = {forward.label: forward_energy, **{r.label: r.energy for r, label in zip(runs, chosen)
-                                                 if label in start_labels}}
+        own = {**ran, **{r.label: r.energy for r, label in zip(runs, chosen) if label in start_labels}}
         other = {r.label: r.energy for r, label in zip(runs, chosen) if label not in start_labels}
         kept = _ascending(own)[0]  # the forward result first among ties; a NaN one last
         if other:
@@ -949,7 +956,7 @@ class Registration:
         # minimum near it, refined on Eq. (3), kept when its objective is below warped_hop_ratio
         # times the kept one's
         before_hops, objective = kept, compared[kept]
-        current = forward if kept == forward.label else best  # the result of label kept
+        current = best if forward is None or kept != forward.label else forward  # the result of label kept
         hops, hop_fields, descriptors, descriptor_seconds = [], [], {}, 0.0
         chains = [("hop", field, o.warped_hops)]
         if o.warped_descriptors and self.Y is None:

@@ -97,7 +97,7 @@ def test_sweep_and_data_dir_from_environment(dataset, monkeypatch):
 
 def test_options_preset_is_a_named_setting_the_other_keys_change(dataset):
     """``[options] preset = "fast"`` starts from ``RegistrationOptions.fast()``; the other keys
-    and the sweep change it; without it the defaults."""
+    and the sweep change it; without it the defaults; ``"paper"`` and ``"fastest"`` too."""
     import morphmodes_vol as mm
 
     body = GLOB + '[options]\npreset = "fast"\nmodes = 3\n[sweep]\nfine_pass = [false, true]\n'
@@ -108,15 +108,17 @@ def test_options_preset_is_a_named_setting_the_other_keys_change(dataset):
     assert load_pipeline(_toml(dataset, GLOB)).pairs[0].options == mm.RegistrationOptions()
     paper = load_pipeline(_toml(dataset, GLOB + '[options]\npreset = "paper"\n')).pairs[0].options
     assert paper == mm.RegistrationOptions.paper_faithful()
-    with pytest.raises(mm.OptionError, match="preset 'quick' is unknown"):
-        mm.RegistrationOptions.preset("quick")
+    fastest = load_pipeline(_toml(dataset, GLOB + '[options]\npreset = "fastest"\n')).pairs[0].options
+    assert fastest == mm.RegistrationOptions.fastest()
+    with pytest.raises(mm.OptionError, match="preset 'turbo' is unknown"):
+        mm.RegistrationOptions.preset("turbo")
 
 
 @pytest.mark.parametrize("body, key", [
     ('colour = 1\n' + GLOB, "colour"),
     (GLOB + "[options]\ngird = 12\n", "options.gird"),
     (GLOB + "[options]\ngrid = 2\n", "options"),
-    (GLOB + '[options]\npreset = "quick"\n', "options.preset"),
+    (GLOB + '[options]\npreset = "turbo"\n', "options.preset"),
     ('[pairs]\nsource = "meshes/source.obj"\ntargets = "meshes/nothing*.obj"\n', "pairs.targets"),
     ('[pairs]\nall = "meshes/*.obj"\nmanifest = "x.csv"\n', "pairs"),
     ('[pairs]\nsource = "meshes/source.obj"\nall = "meshes/*.obj"\n', "pairs.source"),

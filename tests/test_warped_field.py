@@ -416,6 +416,49 @@ def test_warped_pass_options_are_checked_and_on_the_command_line():
         assert _options_from_args(args) == mm.RegistrationOptions().replace(**change), flags
 
 
+def test_field_only_refines_the_field_alone_and_recovers_a_rigid_motion():
+    """``field_only`` (on in the fastest setting): no run of Algorithm 1 from the starts; the
+    field result of lowest field energy is refined on Eq. (3) and kept, with nothing to
+    compare it with (no objective on the full grid). The field is exact for a rigid motion,
+    so a turned and moved blob is recovered to well under 1% of the identity error."""
+    from test_initialize import asymmetric_blob
+
+    X, F = asymmetric_blob()
+    Y = X @ Rotation.from_rotvec([0.2, 0.4, -0.3]).as_matrix().T + [0.05, -0.03, 0.02]
+    options = mm.RegistrationOptions.fastest().replace(grid=32, modes=4)
+    r = mm.register((X, F), (Y, F), options, ground_truth=Y)
+    w = r.metrics["warped_pass"]
+    energies = w["field_energies"]
+    best = min(energies, key=energies.get)
+    assert [s["start"] for s in r.metrics["starts"]] == ["warped: " + best] == [w["kept"]]
+    assert set(energies) | set(w["pruned"]) == {"rest", "aligned"}  # the two starts, no ICP
+    assert list(w["objectives"]) == ["warped: " + best] and w["hops"] == []
+    assert r.metrics["comparison_evaluations"] == 0  # nothing judged on the full grid
+    assert r.evaluations == r.metrics["starts"][0]["evaluations"] > 0
+    assert r.metrics["ground_truth_error"] < 0.01 * r.metrics["identity_error"]
+
+
+def test_field_only_options_and_the_fastest_flag():
+    with pytest.raises(mm.OptionError, match="field_only"):
+        mm.RegistrationOptions(field_only="yes")
+    with pytest.raises(mm.OptionError, match="field_only"):
+        mm.RegistrationOptions(field_only=True, warped_pass=False)
+    fastest = mm.RegistrationOptions.fastest()
+    assert mm.RegistrationOptions.preset("fastest") == fastest
+    # the defaults without the runs, the ICP start, the other orientations and the hops
+    assert fastest.replace(field_only=False, icp_start=True, warped_candidates=True, warped_hops=1,
+                         warped_descriptors=True) == mm.RegistrationOptions()
+    for flags, want in ((["--fastest"], fastest), (["--fastest", "--grid", "32"], fastest.replace(grid=32)),
+                        (["--fastest", "--warped-hops", "1"], fastest.replace(warped_hops=1)),
+                        (["--field-only"], mm.RegistrationOptions(field_only=True))):
+        args = build_parser().parse_args(["register", "a.obj", "b.obj", "-o", "out", *flags])
+        assert _options_from_args(args) == want, flags
+    for flags in (["--fastest", "--fast"], ["--fastest", "--optimizer", "paper"]):
+        args = build_parser().parse_args(["register", "a.obj", "b.obj", "-o", "out", *flags])
+        with pytest.raises(mm.OptionError, match="two different settings"):
+            _options_from_args(args)
+
+
 @pytest.mark.realdata
 @pytest.mark.slow
 def test_warped_pass_recovers_a_pose_the_runs_miss(data_dir):
