@@ -1,7 +1,8 @@
 """Speed benchmark: ours (the default settings; ``--init none --no-coarse-starts``, one
 Levenberg-Marquardt run from the rest pose, the previous fast path; and ``--optimizer paper``, the paper-faithful
 settings) against trimesh's non-rigid ICP (Amberg et al. 2007, ``trimesh.registration.nricp_amberg`` with its defaults),
-in one run, on the same machine.
+in one run, on the same machine; with ``--methods``, also the fast and fastest settings
+(``fast``, ``fastest``) and others.
 
     python scripts/bench.py [--pairs 05 01] [--out results/bench] [--set grid=64 ...]
     python scripts/bench.py --targets-only --out DIR   # the targets of a run already in DIR
@@ -67,8 +68,8 @@ def _import_libraries(method: str) -> None:
 
 def run_ours(source, target, truth, overrides: dict, preset: str = "default") -> dict:
     """One registration with our method, timed stage by stage (runs in a child process):
-    ``RegistrationOptions()`` (``preset="default"``), ``fast()`` (``"fast"``) or
-    ``paper_faithful()`` (``"paper"``) with ``overrides``."""
+    ``RegistrationOptions()`` (``preset="default"``), ``fast()`` (``"fast"``), ``fastest()``
+    (``"fastest"``) or ``paper_faithful()`` (``"paper"``) with ``overrides``."""
     import numpy as np
 
     import morphmodes_vol as mm
@@ -204,7 +205,8 @@ def targets(results: dict) -> dict:
         optimizer's (when that ran; the target asks both); ``"evaluations"``: the paper's
         full-grid equivalents over the default's (``factor``), ``met`` when at least
         :data:`EVALUATION_FACTOR` at no higher error. A target whose methods did not run is
-        left out.
+        left out. ``"settings"``: the same wall-time ratio for ``--fast`` and ``--fastest`` when
+        they ran (``ratio``, ``error``; not targets: the targets are of the defaults).
 
     Examples
     --------
@@ -221,6 +223,10 @@ def targets(results: dict) -> dict:
     if ours and nricp:
         ratio = ours["wall_s"] / nricp["wall_s"]
         out["wall_time"] = {"ratio": ratio, "target": TIME_RATIO, "met": bool(ratio <= TIME_RATIO and no_worse)}
+    others = {label: results[f"ours, {label}"] for label in ("--fast", "--fastest") if f"ours, {label}" in results}
+    if nricp and others:
+        out["settings"] = {label: {"ratio": r["wall_s"] / nricp["wall_s"], "error": r["error"]}
+                           for label, r in others.items()}
     if ours and paper and ours.get("full_grid_equivalents") and paper.get("full_grid_equivalents"):
         factor = paper["full_grid_equivalents"] / ours["full_grid_equivalents"]
         out["evaluations"] = {"factor": factor, "target": EVALUATION_FACTOR,
@@ -241,6 +247,9 @@ def _target_line(pair: str, t: dict, results: dict, overrides: dict | None = Non
                      f"optimizer's {paper['full_grid_equivalents']:.1f}, {e['factor']:.1f}x fewer (at least "
                      f"{e['target']:.0f}x), error {ours['error']:.4f} against {paper['error']:.4f}: "
                      f"**{'met' if e['met'] else 'not met'}**")
+    if parts and "settings" in t:  # the other settings' ratios, for comparison
+        parts.append("the other settings: " + ", ".join(
+            f"{label} {v['ratio']:.2f}x at error {v['error']:.4f}" for label, v in t["settings"].items()))
     if parts and overrides:  # the targets are of the default settings
         parts.append("ours ran with --set " + " ".join(f"{k}={v}" for k, v in overrides.items())
                      + ", not the default settings")
@@ -294,9 +303,10 @@ def main() -> int:
     ap.add_argument("--set", nargs="*", default=[], metavar="OPTION=VALUE",
                     help="override options of every run of ours, e.g. --set grid=48")
     ap.add_argument("--methods", nargs="*", default=["default", "lm", "paper", "nricp"],
-                    choices=["default", "fast", "no-fine-pass", "no-descriptors", "no-warped", "two-way", "lm",
+                    choices=["default", "fast", "fastest", "no-fine-pass", "no-descriptors", "no-warped", "two-way", "lm",
                              "paper", "nricp"],
                     help="default: RegistrationOptions(); fast: --fast, RegistrationOptions.fast(); "
+                         "fastest: --fastest, RegistrationOptions.fastest(); "
                          "no-fine-pass: --no-fine-pass; no-descriptors: --no-warped-descriptors, "
                          "no-warped: --no-warped-pass and two-way: "
                          "--two-way (not run unless named); lm: --init none --no-coarse-starts "
@@ -324,6 +334,8 @@ def main() -> int:
             results["ours, default"] = _in_child(run_ours, source, target, target, overrides)
         if "fast" in args.methods:  # RegistrationOptions.fast()
             results["ours, --fast"] = _in_child(run_ours, source, target, target, overrides, "fast")
+        if "fastest" in args.methods:  # RegistrationOptions.fastest()
+            results["ours, --fastest"] = _in_child(run_ours, source, target, target, overrides, "fastest")
         if "no-fine-pass" in args.methods:  # the coarse pass's result without the fine run
             results["ours, --no-fine-pass"] = _in_child(run_ours, source, target, target,
                                                         {"fine_pass": False, **overrides})
