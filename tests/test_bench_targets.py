@@ -58,6 +58,20 @@ def test_targets_whose_methods_did_not_run_are_left_out(bench):
         "; ours ran with --set grid=48, not the default settings")
 
 
+def test_the_other_settings_ratios_are_reported_not_judged(bench):
+    """``--fast`` and ``--fastest`` get the same wall-time ratio, for comparison, in
+    ``"settings"`` and at the end of the line; the targets stay the default's."""
+    full = _results()
+    full["ours, --fastest"] = {"wall_s": 4.25, "error": 0.0109, "full_grid_equivalents": 4.4}
+    t = bench.targets(full)
+    assert t["settings"] == {"--fastest": {"ratio": pytest.approx(0.5), "error": 0.0109}}
+    assert not t["wall_time"]["met"] and t["wall_time"]["ratio"] == pytest.approx(25.4 / 8.5)
+    line = bench._target_line("p", t, full)
+    assert line.endswith("; the other settings: --fastest 0.50x at error 0.0109")
+    no_nricp = {k: v for k, v in full.items() if k != "trimesh nricp_amberg"}
+    assert "settings" not in bench.targets(no_nricp)
+
+
 def test_targets_only_reads_a_saved_run(bench, tmp_path, monkeypatch, capsys):
     """``--targets-only``: nothing runs; the targets of the saved run are printed and added to
     ``bench.json`` and ``bench.md``, once however often it is asked."""
