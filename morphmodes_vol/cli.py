@@ -134,7 +134,7 @@ def _add_common(p: argparse.ArgumentParser, default_grid: int, default_modes: in
     p.add_argument("--fastest", action="store_true",
                    help="the fastest setting, RegistrationOptions.fastest(): the warped rest field alone "
                         "from the rest pose and the SDF alignment, refined on Eq. (3), no runs of "
-                        "Algorithm 1 from the starts; about a fifth of the default's time, less "
+                        "Algorithm 1 from the starts; about a quarter of the default's time, less "
                         "accurate than --fast; the flags below override it (docs/method.md, \"The "
                         "fastest setting\")")
     p.add_argument("--optimizer", choices=list(OPTIMIZERS), default=None,
