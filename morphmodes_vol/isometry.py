@@ -150,16 +150,26 @@ class IsometryEnergy(AddedTerm):
         self._pattern = SparsePattern(np.r_[p, q, p, q], np.r_[p, q, q, p], self.n)
         self._incidence = sp.csr_matrix((np.r_[np.ones(e), -np.ones(e)], (np.r_[np.arange(e), np.arange(e)],
                                                                            np.r_[p, q])), shape=(e, self.n))
+        self._last = None  # (X, _stretch(X)) of the last call
 
     def _stretch(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Penalized residuals ``h(r) (E,)`` (``r`` beyond the tolerance), the mask of edges
-        beyond it ``(E,)`` and ``drho_e/dx_i = (x_i - x_j) / l_e^2`` ``(E, 3)``."""
+        beyond it ``(E,)`` and ``drho_e/dx_i = (x_i - x_j) / l_e^2`` ``(E, 3)``. An
+        optimizer's step asks for the term and then its matrix at the same vertices: the last
+        call's arrays (read-only) are kept for a call with equal ``X``."""
+        last = self._last  # read once: another thread may replace it
+        if last is not None and last[0].shape == X.shape and np.array_equal(last[0], X):
+            return last[1]
         d = X[self.edges[:, 0]] - X[self.edges[:, 1]]
         length = np.maximum(np.linalg.norm(d, axis=1), 1e-12 * self.rest)
         rho = np.log(length / self.rest)
         r = rho - self.shares @ rho
         active = np.abs(r) > self.tolerance
-        return np.where(active, r - np.sign(r) * self.tolerance, 0.0), active, d / (length**2)[:, None]
+        out = (np.where(active, r - np.sign(r) * self.tolerance, 0.0), active, d / (length**2)[:, None])
+        for a in out:
+            a.flags.writeable = False
+        self._last = (np.array(X, copy=True), out)
+        return out
 
     def term(self, X: np.ndarray) -> tuple[float, np.ndarray]:
         """``E_iso`` and its vertex gradient ``(n, 3)`` at ``X (n, 3)``."""
