@@ -624,10 +624,18 @@ class Registration:
             chosen = next((r for r in reverse_runs if r.label == two_way["kept"]), chosen)
             timings["two_way"] = time.perf_counter() - t_two_way
         out, first = chosen.result, runs[0].result
+        initial, rest_evaluator = first.initial, None
+        if self.options.field_only:
+            # no run starts at the rest pose: the residual there, one evaluation of Eq. (3) on
+            # the quadrature, is the report's initial one (and the failure warning's)
+            rest_evaluator = self.energy()
+            initial = rest_evaluator.evaluate(self.X0)
         timings["optimize"] = time.perf_counter() - t
         # the comparisons' objectives (full or coarse grid) are source-SDF queries too
         compared = np.subtract(_comparison_counters(self._objectives.values()), compared_before)
         timings["sdf_queries"] = sum(r.sdf_seconds for r in runs) + float(compared[2])
+        if rest_evaluator is not None:
+            timings["sdf_queries"] += rest_evaluator.seconds
         if reverse is not None:
             timings["sdf_queries"] += reverse.timings["sdf_queries"]
         if len(runs) > 1:
@@ -652,10 +660,11 @@ class Registration:
         timings["correspondence"] = time.perf_counter() - t
 
         metrics = {
-            # at the rest pose when a run started there (the aligned start's is better already)
-            "initial_energy": float(first.initial.energy),
+            # at the rest pose when a run started there (the aligned start's is better
+            # already); with field_only at the rest pose
+            "initial_energy": float(initial.energy),
             "final_energy": float(out.final.energy),
-            "initial_sdf_rms": first.initial.rms_residual,
+            "initial_sdf_rms": initial.rms_residual,
             "final_sdf_rms": out.final.rms_residual,
             "sdf_rms_units": "fraction of the union bounding-box diagonal",
             "mean_distance_to_target": float(dist.mean() / diag),
@@ -700,7 +709,8 @@ class Registration:
         # grid's nodes, the cost in evaluations of Eq. (3) on the full grid (the paper's)
         queried = (sum(r.points_queried for r in runs) + int(compared[1])
                    + int(init_summary.get("init_field_nodes", 0)) + rm.get("points_queried", 0)
-                   + (warped_field.nodes_queried if warped_field is not None else 0))
+                   + (warped_field.nodes_queried if warped_field is not None else 0)
+                   + (_points_queried(rest_evaluator) if rest_evaluator is not None else 0))
         metrics["points_queried"] = queried
         metrics["full_grid_equivalents"] = queried / self.Q.shape[0]
         if ground_truth is not None:

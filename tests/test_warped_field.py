@@ -434,6 +434,10 @@ def test_field_only_refines_the_field_alone_and_recovers_a_rigid_motion():
     assert set(energies) | set(w["pruned"]) == {"rest", "aligned"}  # the two starts, no ICP
     assert list(w["objectives"]) == ["warped: " + best] and w["hops"] == []
     assert r.metrics["comparison_evaluations"] == 0  # nothing judged on the full grid
+    # the report's initial residual is at the rest pose (one evaluation), not the field's result
+    reg = mm.Registration((X, F), (Y, F), options)
+    assert r.metrics["initial_sdf_rms"] == pytest.approx(reg.energy().evaluate(reg.X0).rms_residual, rel=1e-12)
+    assert r.metrics["final_sdf_rms"] < 0.2 * r.metrics["initial_sdf_rms"]
     assert r.evaluations == r.metrics["starts"][0]["evaluations"] > 0
     assert r.metrics["ground_truth_error"] < 0.01 * r.metrics["identity_error"]
 
