@@ -247,8 +247,8 @@ def _target_line(pair: str, t: dict, results: dict, overrides: dict | None = Non
                      f"optimizer's {paper['full_grid_equivalents']:.1f}, {e['factor']:.1f}x fewer (at least "
                      f"{e['target']:.0f}x), error {ours['error']:.4f} against {paper['error']:.4f}: "
                      f"**{'met' if e['met'] else 'not met'}**")
-    if parts and "settings" in t:  # the other settings' ratios, for comparison
-        parts.append("the other settings: " + ", ".join(
+    if "settings" in t:  # the other settings' ratios, for comparison (also without the default)
+        parts.append(("" if parts else "the default did not run; ") + "the other settings: " + ", ".join(
             f"{label} {v['ratio']:.2f}x at error {v['error']:.4f}" for label, v in t["settings"].items()))
     if parts and overrides:  # the targets are of the default settings
         parts.append("ours ran with --set " + " ".join(f"{k}={v}" for k, v in overrides.items())
@@ -262,7 +262,9 @@ def _add_targets(report: dict, pair: str, results: dict, lines: list[str]) -> No
     t = targets(results)
     if t:
         report.setdefault("targets", {})[pair] = t
-        lines.append(_target_line(pair, t, results, report.get("overrides")))
+        line = _target_line(pair, t, results, report.get("overrides"))
+        if line is not None:
+            lines.append(line)
 
 
 def _targets_only(out: Path) -> int:

@@ -70,6 +70,14 @@ def test_the_other_settings_ratios_are_reported_not_judged(bench):
     assert line.endswith("; the other settings: --fastest 0.50x at error 0.0109")
     no_nricp = {k: v for k, v in full.items() if k != "trimesh nricp_amberg"}
     assert "settings" not in bench.targets(no_nricp)
+    # a run of the other settings without the default still gets its line
+    alone = {k: full[k] for k in ("trimesh nricp_amberg", "ours, --fastest")}
+    assert set(bench.targets(alone)) == {"settings"}
+    assert bench._target_line("p", bench.targets(alone), alone) == (
+        "- issue-6 targets, p: the default did not run; the other settings: --fastest 0.50x at error 0.0109")
+    lines = []
+    bench._add_targets({}, "p", alone, lines)
+    assert lines == [bench._target_line("p", bench.targets(alone), alone)]
 
 
 def test_targets_only_reads_a_saved_run(bench, tmp_path, monkeypatch, capsys):
