@@ -158,7 +158,7 @@ class IsometryEnergy(AddedTerm):
         optimizer's step asks for the term and then its matrix at the same vertices: the last
         call's arrays (read-only) are kept for a call with equal ``X``."""
         last = self._last  # read once: another thread may replace it
-        if last is not None and last[0].shape == X.shape and np.array_equal(last[0], X):
+        if last is not None and np.array_equal(last[0], X):
             return last[1]
         d = X[self.edges[:, 0]] - X[self.edges[:, 1]]
         length = np.maximum(np.linalg.norm(d, axis=1), 1e-12 * self.rest)
@@ -186,20 +186,26 @@ class IsometryEnergy(AddedTerm):
         ``J^T P^T diag(d) P J = J^T diag(d) J - va vd^T - vd va^T + (sum d) va va^T``, the
         first part as sparse coordinate blocks, the others as outer products."""
         _, active, drho = self._stretch(np.asarray(X, dtype=np.float64))
-        a = self.shares
-        dw = a * active  # diag(d) of the edges beyond the tolerance
+        dw = self.shares * active  # diag(d) of the edges beyond the tolerance
         c = self.coefficient
         blocks = {}
         for i in range(3):
             for j in range(i, 3):
                 w = c * dw * drho[:, i] * drho[:, j]
                 blocks[i, j] = self._pattern.matrix(np.r_[w, w, -w, -w])
+        return VertexBlocks(blocks=blocks, outer=self._outer_terms(dw, drho))
+
+    def _outer_terms(self, dw: np.ndarray, drho: np.ndarray) -> list:
+        """The matrix's outer products (module docstring), ``- va vd^T - vd va^T + (sum d) va
+        va^T`` times the coefficient, as the ``(c, u, v)`` of :class:`VertexBlocks`, from
+        ``d`` (``dw (E,)``, zero on the edges within the tolerance) and ``drho (E, 3)``."""
+        c = self.coefficient
 
         def vertex(weights):  # D^T (weights * drho), (n, 3): J^T weights before B^T
             return np.stack([self._incidence.T @ (weights * drho[:, i]) for i in range(3)], axis=1)
 
-        ua, ud = vertex(a), vertex(dw)
-        return VertexBlocks(blocks=blocks, outer=[(-c, ua, ud), (-c, ud, ua), (c * dw.sum(), ua, ua)])
+        ua, ud = vertex(self.shares), vertex(dw)
+        return [(-c, ua, ud), (-c, ud, ua), (c * dw.sum(), ua, ua)]
 
     def term_normal_matrix(self, basis, m: int, X: np.ndarray) -> np.ndarray:
         """The term's Gauss-Newton block at the vertices ``X (n, 3)`` in the first ``m``
@@ -214,8 +220,8 @@ class IsometryEnergy(AddedTerm):
         rest field, 7-20% of the edges are beyond the tolerance; the same matrix to
         rounding (tested)."""
         _, active, drho = self._stretch(np.asarray(X, dtype=np.float64))
-        a, c = self.shares, self.coefficient
-        dw = a * active
+        c = self.coefficient
+        dw = self.shares * active
         C = basis.skinning_matrix(m)
         on = np.flatnonzero(active)
         K = C[self.edges[on, 0]] - C[self.edges[on, 1]]  # D C on the active edges, (k, 4m)
@@ -223,10 +229,5 @@ class IsometryEnergy(AddedTerm):
         for i in range(3):
             for j in range(i, 3):
                 blocks[i, j] = K.T @ (K * (c * dw[on] * drho[on, i] * drho[on, j])[:, None])
-
-        def vertex(weights):  # D^T (weights * drho), (n, 3): J^T weights before B^T
-            return np.stack([self._incidence.T @ (weights * drho[:, i]) for i in range(3)], axis=1)
-
-        ua, ud = vertex(a), vertex(dw)
-        outer = VertexBlocks(blocks={}, outer=[(-c, ua, ud), (-c, ud, ua), (c * dw.sum(), ua, ua)])
+        outer = VertexBlocks(blocks={}, outer=self._outer_terms(dw, drho))
         return _symmetric(_assemble(blocks, m) + outer._outer(basis, m))

@@ -523,6 +523,11 @@ class Registration:
             r.energy_grid = "fine" if r.objective is None else "coarse"
         return r.energy
 
+    def _full_grid_objective(self, r: "_StartRun") -> float:
+        """A finished run's objective on the full grid: its energy when it was judged there,
+        else :meth:`_objective` of its result."""
+        return r.energy if r.energy_grid == "fine" else self._objective(r.result.vertices)
+
     def _redundant_start(self, a: "_StartRun", b: "_StartRun") -> "_StartRun | None":
         """The run of ``a``, ``b`` (at the same stage) that need not go on, or ``None``;
         marks it stopped."""
@@ -594,7 +599,6 @@ class Registration:
         overlap = (ThreadPoolExecutor(1, thread_name_prefix="warped-field")
                    if self.options.warped_pass and self.options.overlap_field and not self.options.field_only
                    else None)
-        fields = None
         with single_threaded_blas():
             try:
                 channels = (overlap.submit(self._descriptor_channels_or_error)
@@ -801,9 +805,7 @@ class Registration:
                 "reverse, both sides": self.basis.fit(np.vstack([P, self.Y]), o.modes, rows=both)}
         options = o.replace(initial_modes=o.modes, lm_final_iterations=o.two_way_iterations)
         runs = self._run_starts([(label, T, options) for label, T in fits.items()], progress)
-        forward_energy = (forward.energy if forward.energy_grid == "fine"
-                          else self._objective(forward.result.vertices))
-        objectives = {"forward": forward_energy, **{r.label: r.energy for r in runs}}
+        objectives = {"forward": self._full_grid_objective(forward), **{r.label: r.energy for r in runs}}
         finite = {k: e for k, e in objectives.items() if np.isfinite(e)}
         kept = min(finite, key=finite.get) if finite else "forward"
         log.info("two-way: objective %s: kept the %s result",
@@ -943,9 +945,7 @@ class Registration:
                  or (o.warped_descriptors and self.Y is not None))
         runs = [self._run_starts([(WARPED_PREFIX + label, results[label].T, options)], progress, judge=judge)[0]
                 for label in chosen]
-        forward_energy = (None if forward is None else forward.energy if forward.energy_grid == "fine"
-                          else self._objective(forward.result.vertices))
-        ran = {} if forward is None else {forward.label: forward_energy}  # field_only: no runs
+        ran = {} if forward is None else {forward.label: self._full_grid_objective(forward)}  # field_only: no runs
         compared = {**ran, **{r.label: r.energy for r in runs}}
         # the orientation prior, as the initialization's (init_switch): a result from another
         # orientation is kept only when its objective is below warped_candidate_ratio times
