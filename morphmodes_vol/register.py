@@ -12,6 +12,7 @@ import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -35,6 +36,7 @@ from .repair import sdf_faces
 from .optimize import AdaptiveRun, OptimizationHistory, ProgressEvent
 from .sdf import Grid, TargetSDF, build_target_sdf, closest_points, is_target_sdf_path, load_target_sdf
 from .sdf.grid import trilinear_sample
+from .sdf.target import TARGET_SDF_SUFFIXES, DenseTargetSDF
 from .stages import SourceEigenbasis, TargetField
 from .two_way import reverse_correspondences, closest_point_rows
 from .warped_field import WarpedRestField, ZeroEnergy
@@ -362,6 +364,55 @@ class Registration:
             n = self.normalization
             return n.scale * self.target_sdf.sample(n.undo(points))
         return self.target_sdf.sample(points)
+
+    def save_target_sdf(self, path) -> Path:
+        """Write the target's SDF to ``path`` (``.npz``: dense grid, ``.vdb``: OpenVDB level
+        set) in the target's original frame, so that ``register(source, path)`` registers onto
+        the same target. Returns the path.
+
+        ``target_sdf`` itself is in the pair's normalized frame when the target is a mesh (and
+        in the target's own frame for a pipeline's cached field): saved as it is, its target
+        would sit at another place and scale. A dense grid built here is moved to the original
+        frame exactly (nodes mapped back, spacing and values divided by the normalization's
+        scale); an OpenVDB level set, or a pipeline's field, is rebuilt from the target mesh on
+        the same lattice mapped back; a target given as an SDF is written as it was read, to a
+        file of its own kind.
+
+        Examples
+        --------
+        >>> import tempfile, pathlib
+        >>> from morphmodes_vol.primitives import capsule
+        >>> from morphmodes_vol.sdf import load_target_sdf
+        >>> V, F = capsule(count=(8, 8))
+        >>> reg = Registration((V, F), (V * 3.0 + 5.0, F), RegistrationOptions(grid=16, modes=2))
+        >>> path = reg.save_target_sdf(pathlib.Path(tempfile.mkdtemp()) / "target.npz")
+        >>> lo, hi = load_target_sdf(path).surface_bounds()  # the target's box, [4.25, 5.75] x ... x [2.75, 7.25]
+        >>> np.round(lo, 1).tolist(), np.round(hi, 1).tolist()
+        ([4.3, 4.3, 2.8], [5.7, 5.7, 7.2])
+        """
+        path = Path(path)
+        backend = TARGET_SDF_SUFFIXES.get(path.suffix.lower())
+        if backend is None:
+            raise OptionError(f"{path}: a target SDF file ends in one of {sorted(TARGET_SDF_SUFFIXES)} "
+                              "(.npz: dense grid, .vdb: OpenVDB level set)")
+        sdf = self.target_sdf
+        if self._grid_target:  # read from a file, in the target's original frame already
+            kind = "dense" if isinstance(sdf, DenseTargetSDF) else "vdb"
+            if kind != backend:
+                raise OptionError(f"{path}: the target was given as a {kind} SDF; write it to a "
+                                  f"{'.npz' if kind == 'dense' else '.vdb'} file")
+            sdf.save(path)
+            return path
+        n, g, o = self.normalization, self.target_grid, self.options
+        grid = Grid(origin=n.undo(g.origin[None])[0], spacing=g.spacing / n.scale, shape=g.shape)
+        if backend == "dense" and isinstance(sdf, DenseTargetSDF):
+            out = DenseTargetSDF(grid, sdf.values / n.scale)
+        else:
+            log.info("target SDF: rebuilt in the target's frame for %s", path)
+            out = build_target_sdf(self.target_vertices, self.target_sdf_faces, grid, backend,
+                                   o.target_sign, o.vdb_half_width)
+        out.save(path)
+        return path
 
     def initial_alignment(self) -> InitialAlignment:
         """The initialization stage (:func:`morphmodes_vol.initialize.align`) on a coarse grid

@@ -161,9 +161,8 @@ def test_a_descriptor_hop_follows_the_plain_hops():
 
 def test_an_sdf_target_has_no_descriptors(tmp_path):
     source, target = _bent_pair()
-    sdf = mm.Registration(source, target, mm.RegistrationOptions(grid=24, modes=4)).target_sdf
-    path = tmp_path / "target.npz"
-    sdf.save(path)
+    reg = mm.Registration(source, target, mm.RegistrationOptions(grid=24, modes=4))
+    path = reg.save_target_sdf(tmp_path / "target.npz")
     r = mm.register(source, path, grid=24, modes=4)
     w = r.metrics["warped_pass"]
     assert w["descriptors"] == {"skipped": "the target is an SDF, not a mesh"}
