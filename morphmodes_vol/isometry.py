@@ -230,4 +230,4 @@ class IsometryEnergy(AddedTerm):
             for j in range(i, 3):
                 blocks[i, j] = K.T @ (K * (c * dw[on] * drho[on, i] * drho[on, j])[:, None])
         outer = VertexBlocks(blocks={}, outer=self._outer_terms(dw, drho))
-        return _symmetric(_assemble(blocks, m) + outer._outer(basis, m))
+        return _symmetric(_assemble(blocks, m) + outer.outer_subspace(basis, m))

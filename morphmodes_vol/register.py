@@ -991,9 +991,10 @@ class Registration:
         chosen = list(dict.fromkeys(chosen))
         options = o.replace(initial_modes=o.modes, lm_final_iterations=o.warped_polish_iterations)
         # a refined result is judged by the objective on the full grid when something is
-        # compared with it: the runs' result, another refined one, a hop
-        judge = (forward is not None or len(chosen) > 1 or o.warped_hops > 0
-                 or (o.warped_descriptors and self.Y is not None))
+        # compared with it: the runs' result, another refined one, a hop (the hops below run
+        # as planned here, unless the objective is not finite or the descriptors fail)
+        descriptor_hop = o.warped_descriptors and self.Y is not None  # an SDF target has no surface
+        judge = forward is not None or len(chosen) > 1 or o.warped_hops > 0 or descriptor_hop
         runs = [self._run_starts([(WARPED_PREFIX + label, results[label].T, options)], progress, judge=judge)[0]
                 for label in chosen]
         ran = {} if forward is None else {forward.label: self._full_grid_objective(forward)}  # field_only: no runs
@@ -1020,10 +1021,10 @@ class Registration:
         current = best if forward is None or kept != forward.label else forward  # the result of label kept
         hops, hop_fields, descriptors, descriptor_seconds = [], [], {}, 0.0
         chains = [("hop", field, o.warped_hops)]
-        if o.warped_descriptors and self.Y is None:
+        if o.warped_descriptors and not descriptor_hop:
             log.info("warped_descriptors: a target given as an SDF has no surface for descriptors")
             descriptors = {"skipped": "the target is an SDF, not a mesh"}
-        elif o.warped_descriptors and np.isfinite(objective):
+        elif descriptor_hop and np.isfinite(objective):
             # then one hop through the field with descriptors (docs/method.md, "Descriptors
             # in the warped field")
             try:

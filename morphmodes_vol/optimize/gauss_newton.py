@@ -148,9 +148,11 @@ class VertexBlocks:
         """The matrix alone in the first ``m`` modes, ``(12m, 12m)`` in the T layout."""
         C = basis.skinning_matrix(m)
         A = _assemble({ab: C.T @ (H @ C) for ab, H in self.blocks.items()}, m)
-        return _symmetric(A + self._outer(basis, m))
+        return _symmetric(A + self.outer_subspace(basis, m))
 
-    def _outer(self, basis: LBSBasis, m: int) -> np.ndarray:
+    def outer_subspace(self, basis: LBSBasis, m: int) -> np.ndarray:
+        """The outer products' part alone in the first ``m`` modes, ``sum c (B^T u)(B^T v)^T``,
+        ``(12m, 12m)`` in the T layout (not symmetrized)."""
         out = np.zeros((12 * m, 12 * m))
         pulled = {}  # the terms share their vectors: each pulled back once
         for c, u, v in self.outer:
