@@ -449,9 +449,11 @@ def test_field_only_options_and_the_fastest_flag():
         mm.RegistrationOptions(field_only=True, warped_pass=False)
     fastest = mm.RegistrationOptions.fastest()
     assert mm.RegistrationOptions.preset("fastest") == fastest
-    # the defaults without the runs, the ICP start, the other orientations and the hops
+    # the defaults without the runs, the ICP start, the other orientations and the hops, with
+    # a narrower band, earlier pruning and fewer refined orientations
     assert fastest.replace(field_only=False, icp_start=True, warped_candidates=True, warped_hops=1,
-                         warped_descriptors=True) == mm.RegistrationOptions()
+                           warped_descriptors=True, band_cells=2.0, warped_prune_modes=8,
+                           init_candidates=6) == mm.RegistrationOptions()
     for flags, want in ((["--fastest"], fastest), (["--fastest", "--grid", "32"], fastest.replace(grid=32)),
                         (["--fastest", "--warped-hops", "1"], fastest.replace(warped_hops=1)),
                         (["--field-only"], mm.RegistrationOptions(field_only=True))):
