@@ -267,6 +267,52 @@ def test_source_field_resolution_is_capped_and_still_covers_the_box(monkeypatch)
     assert np.all(field.grid.origin <= Q.min(0)) and np.all(hi >= Q.max(0))
 
 
+def test_source_field_queries_only_the_nodes_the_alignment_samples():
+    """The alignment's source field queries the nodes within two spacings of the ball the
+    starts map the quadrature points into, or of the quadrature box; the grid's corners
+    beyond both get the distance to the source's bounding sphere, a lower bound. Every
+    point a start samples reads the same values as from the field queried everywhere."""
+    import morphmodes_vol.initialize as init
+
+    X, F = asymmetric_blob()
+    R = Rotation.from_rotvec([0.3, -0.5, 0.9]).as_matrix()
+    Y = X @ R.T + [0.4, -0.1, 0.2]
+    grid, Q = _pair_grid(X, Y, res=20)
+    cs, ct = X.mean(0), Y.mean(0)
+    field = init._source_field(X, F, Q, grid.spacing, cs, ct, 1.0, "raycast")
+    full = RigidSourceField.from_mesh(X, F, field.grid)
+    assert full.nodes == field.grid.size and field.nodes < 0.8 * field.grid.size
+    for rot in candidate_rotations():  # every start about the centroids
+        P = (Q - ct) @ rot + cs  # R^T (q - t) with t = ct - R cs
+        for a, b in zip(field.sample(P), full.sample(P)):
+            np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(field.sample(Q)[0], full.sample(Q)[0])  # the rest pose
+    # elsewhere: positive and at most the true distance
+    d, true = field.values[..., 0].ravel(), full.values[..., 0].ravel()
+    filled = d != true
+    assert filled.sum() == field.grid.size - field.nodes
+    assert np.all(d[filled] > 0) and np.all(d[filled] <= true[filled] + 1e-12)
+
+
+def test_align_is_the_same_with_the_source_field_queried_everywhere(monkeypatch):
+    import morphmodes_vol.initialize as init
+
+    X, F = asymmetric_blob()
+    R = Rotation.from_rotvec(np.radians(120) * np.array([1, 1, 0]) / np.sqrt(2)).as_matrix()
+    Y = X @ R.T + [0.3, -0.2, 0.1]
+    grid, Q = _pair_grid(X, Y)
+    g = signed_distance(Y, F, Q).value
+    masked = align(X, F, Q, g, grid.cell_volume, kind="rigid", keep=6, switch=1.0)
+    everywhere = RigidSourceField.from_mesh.__func__
+    monkeypatch.setattr(init.RigidSourceField, "from_mesh",
+                        classmethod(lambda cls, X0, F_, grid_, sign="raycast", near=None:
+                                    everywhere(cls, X0, F_, grid_, sign)))
+    full = align(X, F, Q, g, grid.cell_volume, kind="rigid", keep=6, switch=1.0)
+    np.testing.assert_array_equal(masked.matrix, full.matrix)
+    assert masked.refined_energies == full.refined_energies and masked.evaluations == full.evaluations
+    assert masked.field_nodes < full.field_nodes
+
+
 def test_adaptive_run_stage_by_stage_is_optimize_adaptive():
     """Identity: advancing an AdaptiveRun one stage at a time is the one-call function."""
     from morphmodes_vol.optimize import AdaptiveRun, optimize_adaptive, single_threaded_blas
