@@ -345,7 +345,7 @@ class RigidSourceField:
                   near: np.ndarray | None = None) -> "RigidSourceField":
         """Sample the signed distance of ``(X0 (n, 3), F (f, 3))`` on ``grid``.
 
-        With ``near ((nx * ny * nz,) bool``, the nodes in :meth:`Grid.points` order), only
+        With ``near`` (``(nx * ny * nz,)`` bool, the nodes in :meth:`Grid.points` order), only
         those nodes and the ones within a spacing of the source's bounding sphere are
         queried; the others, for points the caller never samples, get the distance to that
         sphere (a lower bound of the distance, positive there) and its gradient, so a stray
