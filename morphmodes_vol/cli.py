@@ -18,7 +18,7 @@ from .errors import MorphModesError, OptionError
 from .export import MESH_FORMATS, write_outputs
 from .options import (INITIALIZATIONS, OPTIMIZERS, PRECONDITIONERS, QUADRATURES, SIGN_METHODS, WARPED_CHOICES,
                       RegistrationOptions)
-from .sdf.target import TARGET_BACKENDS, TARGET_SDF_SUFFIXES
+from .sdf.target import TARGET_BACKENDS, target_sdf_backend
 
 __all__ = ["main"]
 
@@ -401,12 +401,7 @@ def cmd_sdf(args) -> int:
     from .sdf import Grid, build_target_sdf
 
     out = Path(args.output)
-    backend = TARGET_SDF_SUFFIXES.get(out.suffix.lower())
-    if backend is None:
-        raise MorphModesError(
-            f"{out}: the output must end in one of {sorted(TARGET_SDF_SUFFIXES)} "
-            "(.npz: dense grid, .vdb: OpenVDB level set)"
-        )
+    backend = target_sdf_backend(out)
     opts = RegistrationOptions()
     sign = args.target_sign or opts.target_sign
     V, F = as_mesh(args.mesh, "mesh")

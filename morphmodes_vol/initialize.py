@@ -342,11 +342,11 @@ class RigidSourceField:
 
     @classmethod
     def from_mesh(cls, X0: np.ndarray, F: np.ndarray, grid: Grid, sign: str = "raycast",
-                  near: np.ndarray | None = None) -> "RigidSourceField":
+                  near: Callable[[np.ndarray], np.ndarray] | None = None) -> "RigidSourceField":
         """Sample the signed distance of ``(X0 (n, 3), F (f, 3))`` on ``grid``.
 
-        With ``near`` (``(nx * ny * nz,)`` bool, the nodes in :meth:`Grid.points` order), only
-        those nodes and the ones within a spacing of the source's bounding sphere are
+        With ``near`` (nodes ``(N, 3)`` -> ``(N,)`` bool, called once on the grid's nodes), only
+        the nodes it keeps and the ones within a spacing of the source's bounding sphere are
         queried; the others, for points the caller never samples, get the distance to that
         sphere (a lower bound of the distance, positive there) and its gradient, so a stray
         sample still sees a field that grows outward.
@@ -360,7 +360,7 @@ class RigidSourceField:
         reach = float(np.linalg.norm(X0 - center, axis=1).max())
         offset = P - center
         dist = np.linalg.norm(offset, axis=1)
-        near = np.asarray(near, dtype=bool) | (dist <= reach + grid.spacing)
+        near = np.asarray(near(P), dtype=bool) | (dist <= reach + grid.spacing)
         values = np.empty((P.shape[0], 4))
         sd = signed_distance(X0, F, P[near], sign=sign)
         values[near, 0], values[near, 1:] = sd.value, sd.normal
@@ -498,10 +498,12 @@ def _source_field(X0: np.ndarray, F: np.ndarray, Q: np.ndarray, spacing: float, 
                  float((hi - lo).max()) / (_FIELD_MAX_RESOLUTION - 1), spacing)
         resolution = _FIELD_MAX_RESOLUTION
     grid = Grid.covering(lo, hi, resolution)
-    P = grid.points()
     margin = 2.0 * spacing
-    near = (np.linalg.norm(P - cs, axis=1) <= radius + margin) | np.all(
-        (P >= Q.min(axis=0) - margin) & (P <= Q.max(axis=0) + margin), axis=1)
+
+    def near(P: np.ndarray) -> np.ndarray:
+        return (np.linalg.norm(P - cs, axis=1) <= radius + margin) | np.all(
+            (P >= Q.min(axis=0) - margin) & (P <= Q.max(axis=0) + margin), axis=1)
+
     return RigidSourceField.from_mesh(X0, F, grid, sign=sign, near=near)
 
 

@@ -36,7 +36,7 @@ from .repair import sdf_faces
 from .optimize import AdaptiveRun, OptimizationHistory, ProgressEvent
 from .sdf import Grid, TargetSDF, build_target_sdf, closest_points, is_target_sdf_path, load_target_sdf
 from .sdf.grid import trilinear_sample
-from .sdf.target import TARGET_SDF_SUFFIXES, DenseTargetSDF
+from .sdf.target import TARGET_SDF_SUFFIXES, DenseTargetSDF, target_sdf_backend
 from .stages import SourceEigenbasis, TargetField
 from .two_way import reverse_correspondences, closest_point_rows
 from .warped_field import WarpedRestField, ZeroEnergy
@@ -391,16 +391,14 @@ class Registration:
         ([4.3, 4.3, 2.8], [5.7, 5.7, 7.2])
         """
         path = Path(path)
-        backend = TARGET_SDF_SUFFIXES.get(path.suffix.lower())
-        if backend is None:
-            raise OptionError(f"{path}: a target SDF file ends in one of {sorted(TARGET_SDF_SUFFIXES)} "
-                              "(.npz: dense grid, .vdb: OpenVDB level set)")
+        backend = target_sdf_backend(path)
         sdf = self.target_sdf
         if self._grid_target:  # read from a file, in the target's original frame already
             kind = "dense" if isinstance(sdf, DenseTargetSDF) else "vdb"
             if kind != backend:
+                suffix = next(s for s, b in TARGET_SDF_SUFFIXES.items() if b == kind)
                 raise OptionError(f"{path}: the target was given as a {kind} SDF; write it to a "
-                                  f"{'.npz' if kind == 'dense' else '.vdb'} file")
+                                  f"{suffix} file")
             sdf.save(path)
             return path
         n, g, o = self.normalization, self.target_grid, self.options

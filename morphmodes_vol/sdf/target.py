@@ -42,6 +42,7 @@ __all__ = [
     "build_target_sdf",
     "is_target_sdf_path",
     "load_target_sdf",
+    "target_sdf_backend",
 ]
 
 log = logging.getLogger(__name__)
@@ -226,6 +227,22 @@ def build_target_sdf(V, F, grid: Grid, backend: TargetBackend = "dense",
         return VDBTargetSDF.from_mesh(V, F, grid.spacing, half_width=half_width, sign=sign,
                                       origin=grid.origin)
     raise OptionError(f"target backend {backend!r}: expected one of {TARGET_BACKENDS}")
+
+
+def target_sdf_backend(path) -> TargetBackend:
+    """The backend a target-SDF file at ``path`` holds, by its suffix (``.npz``: ``"dense"``,
+    ``.vdb``: ``"vdb"``); :class:`OptionError` for another suffix (a file to write).
+
+    Examples
+    --------
+    >>> target_sdf_backend("out/lion.VDB")
+    'vdb'
+    """
+    backend = TARGET_SDF_SUFFIXES.get(Path(path).suffix.lower())
+    if backend is None:
+        raise OptionError(f"{path}: a target SDF file ends in one of {sorted(TARGET_SDF_SUFFIXES)} "
+                          "(.npz: dense grid, .vdb: OpenVDB level set)")
+    return backend
 
 
 def is_target_sdf_path(target) -> bool:
