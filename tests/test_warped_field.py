@@ -50,20 +50,32 @@ def test_the_gauss_newton_model_is_exact_for_a_linear_target():
     assert field.evaluate(T + d.reshape(4, 3, 4)) == pytest.approx(model, rel=1e-6)
 
 
-def test_gradient_matches_finite_differences_with_the_isometry_prior():
-    """Identity: ``2 g`` of the normal equations is the gradient of ``E_w`` plus the prior, on
-    a smooth (analytic) target."""
-    field, *_ = _capsule_field(lambda q: np.linalg.norm(q * [1.2, 1.0, 0.9], axis=1) - 0.5,
-                               modes=3, terms=True)
-    rng = np.random.default_rng(2)
-    T = rng.normal(scale=0.03, size=(3, 3, 4))
+def _field_gradient_error(sample_target):
+    """Largest ``|2 g_i - fd_i|`` over the 36 coordinates of 3 modes, relative to
+    ``max |2 g|``, on the capsule with the isometry prior, at random blocks; ``fd`` central
+    differences of ``E_w`` 1e-6 apart."""
+    field, *_ = _capsule_field(sample_target, modes=3, terms=True)
+    T = np.random.default_rng(2).normal(scale=0.03, size=(3, 3, 4))
     _, normal = field.evaluate(T, 3)
     eps = 1e-6
-    for i in rng.choice(36, size=8, replace=False):
+    fd = np.empty(36)
+    for i in range(36):
         d = np.zeros(36)
         d[i] = eps
-        fd = (field.evaluate(T + d.reshape(3, 3, 4)) - field.evaluate(T - d.reshape(3, 3, 4))) / (2 * eps)
-        assert 2 * normal.g[i] == pytest.approx(fd, rel=2e-3, abs=1e-7)
+        fd[i] = (field.evaluate(T + d.reshape(3, 3, 4)) - field.evaluate(T - d.reshape(3, 3, 4))) / (2 * eps)
+    return np.max(np.abs(2 * normal.g - fd)) / np.max(np.abs(2 * normal.g))
+
+
+def test_gradient_matches_finite_differences_with_the_isometry_prior():
+    """Identity: ``2 g`` of the normal equations is the gradient of ``E_w`` plus the prior.
+
+    The Jacobian takes ``grad g`` from central differences of ``g`` a quarter spacing apart,
+    which are exact for a trilinear cell and for a quadratic ``g``: on a quadric target the
+    identity holds to the finite differences' rounding. On a distance field (not quadratic)
+    the differences are off by O(h^2); that part is bounded, not equal."""
+    scale = np.array([1.2, 1.0, 0.9])
+    assert _field_gradient_error(lambda q: np.sum((q * scale) ** 2, axis=1) - 0.25) < 1e-8
+    assert _field_gradient_error(lambda q: np.linalg.norm(q * scale, axis=1) - 0.5) < 5e-3
 
 
 def test_minimize_recovers_a_rigid_motion_of_a_sphere():
