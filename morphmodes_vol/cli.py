@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import MorphModesError, OptionError
-from .export import MESH_FORMATS, write_outputs
+from .export import MESH_FORMATS, check_output_path, output_names, write_outputs
 from .options import (INITIALIZATIONS, OPTIMIZERS, PRECONDITIONERS, QUADRATURES, SIGN_METHODS, WARPED_CHOICES,
                       RegistrationOptions)
 from .sdf.target import TARGET_BACKENDS, target_sdf_backend
@@ -303,6 +303,8 @@ def cmd_register(args) -> int:
     if fmt is None:
         ext = Path(args.source).suffix.lower().lstrip(".")
         fmt = ext if ext in MESH_FORMATS else "ply"
+    check_output_path(args.output, "folder", output_names(fmt),
+                      inputs=(args.source, args.target, args.ground_truth, args.landmarks))
     inputs = {"source": str(args.source), "target": str(args.target), "cli": True}
     if args.ground_truth:
         inputs["ground_truth"] = str(args.ground_truth)
@@ -315,8 +317,8 @@ def cmd_register(args) -> int:
 def cmd_demo(args) -> int:
     from .demo import demo_pair
 
+    out = check_output_path(args.output, "folder")
     (Vs, F), (Vt, Ft) = demo_pair()
-    out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     import trimesh
 
@@ -370,10 +372,23 @@ class PairProgress:
             self.stream.flush()
 
 
+def _check_pipeline_outputs(pipeline) -> None:
+    """The checks of :func:`check_output_path` on a pipeline's output folder, its pairs'
+    folders and summaries against every input of the pipeline."""
+    inputs = {p for spec in pipeline.pairs for p in (spec.source, spec.target, spec.ground_truth, spec.landmarks)
+              if p is not None}
+    summaries = [f"summary.{k}" for k in ("csv", "json", "md", "png")]
+    check_output_path(pipeline.output, "folder", summaries, inputs)
+    for spec in pipeline.pairs:
+        fmt = spec.resolved_format
+        check_output_path(spec.outdir, "folder", output_names(fmt) + ("failed.json",), inputs)
+
+
 def cmd_run(args) -> int:
     from .pipeline import load_pipeline, run_pipeline
 
     pipeline = load_pipeline(args.pipeline, output=args.output)
+    _check_pipeline_outputs(pipeline)
     if args.executor == "dask" and not args.verbose:
         try:  # Dask's scheduler and nannies log every connection at INFO (set before import)
             import dask
@@ -400,7 +415,7 @@ def cmd_sdf(args) -> int:
     from .mesh import as_mesh, bbox_diagonal
     from .sdf import Grid, build_target_sdf
 
-    out = Path(args.output)
+    out = check_output_path(args.output, "file", inputs=[args.mesh])
     backend = target_sdf_backend(out)
     opts = RegistrationOptions()
     sign = args.target_sign or opts.target_sign
@@ -460,6 +475,7 @@ def _render_inputs(args):
 def cmd_render(args) -> int:
     from .render import render_panels
 
+    check_output_path(args.output, "file", inputs=[*args.inputs, args.ground_truth])
     panels = _render_inputs(args)
     path = render_panels(panels, args.output, up=args.up, elev=args.elev, azim=args.azim,
                          vmax=args.max_error, columns=args.columns)

@@ -15,6 +15,7 @@ __all__ = [
     "OpenVDBUnavailableError",
     "TargetSDFLoadError",
     "LandmarkError",
+    "OutputPathError",
 ]
 
 
@@ -50,3 +51,8 @@ class TargetSDFLoadError(MorphModesError):
 class LandmarkError(MorphModesError):
     """Landmarks cannot be used: unreadable or empty file, wrong column count, non-integer,
     out-of-range or duplicate source vertex index, non-finite target point."""
+
+
+class OutputPathError(MorphModesError):
+    """An output path cannot be used: a file where a folder is expected (or the reverse), a
+    folder that cannot be created or written, or an output that would overwrite an input."""

@@ -17,9 +17,10 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from .errors import OptionError
+from .errors import OptionError, OutputPathError
 
-__all__ = ["write_outputs", "atomic_write_bytes", "atomic_path", "library_versions", "MESH_FORMATS"]
+__all__ = ["write_outputs", "output_names", "check_output_path", "atomic_write_bytes", "atomic_path",
+           "library_versions", "MESH_FORMATS"]
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +46,81 @@ def atomic_path(path: str | os.PathLike, suffix: str = ".tmp") -> Iterator[Path]
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def output_names(mesh_format: str = "ply") -> tuple[str, ...]:
+    """The files :func:`write_outputs` writes in its folder."""
+    return (f"registered.{mesh_format}", "state.npz", "correspondence.npz", "report.json")
+
+
+def _nearest_existing(path: Path) -> Path:
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    return path
+
+
+def check_output_path(path: str | os.PathLike, kind: str = "folder", writes=(), inputs=()) -> Path:
+    """Check, before any work, that ``path`` can take the outputs; nothing is created.
+
+    Parameters
+    ----------
+    path : path
+        The output folder (``kind="folder"``) or file (``kind="file"``).
+    kind : {"folder", "file"}
+    writes : iterable of path
+        The files that will be written (for a folder, relative to it; default: ``path``
+        itself for a file).
+    inputs : iterable of path
+        Input files, none of which may be among ``writes``.
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    Raises
+    ------
+    OutputPathError
+        If ``path`` is a file where a folder is expected or a folder where a file is, if its
+        folder cannot be created (a file on the way) or written (a trial file cannot be made
+        in it or in its nearest existing parent), or if an output would overwrite an input.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> with tempfile.TemporaryDirectory() as d:
+    ...     _ = check_output_path(Path(d) / "new" / "folder")       # fine: it will be created
+    ...     (Path(d) / "a.obj").write_text("")
+    ...     check_output_path(Path(d) / "a.obj")
+    Traceback (most recent call last):
+    ...
+    morphmodes_vol.errors.OutputPathError: output folder ...a.obj is an existing file
+    """
+    if kind not in ("folder", "file"):
+        raise ValueError(f"kind must be 'folder' or 'file', got {kind!r}")
+    path = Path(path)
+    if kind == "folder" and path.exists() and not path.is_dir():
+        raise OutputPathError(f"output folder {path} is an existing file")
+    if kind == "file" and path.is_dir():
+        raise OutputPathError(f"output file {path} is an existing folder; give a file name")
+    folder = path if kind == "folder" else path.parent
+    existing = _nearest_existing(folder.absolute())
+    if not existing.is_dir():
+        raise OutputPathError(f"output folder {folder} cannot be created: {existing} is a file")
+    try:  # the only reliable test (os.access is wrong for root and read-only file systems)
+        fd, trial = tempfile.mkstemp(prefix=".morphmodes-write-test.", dir=existing)
+        os.close(fd)
+        os.unlink(trial)
+    except OSError as exc:
+        verb = "written" if existing == folder.absolute() else "created"
+        raise OutputPathError(f"output folder {folder} cannot be {verb}: {exc.strerror} "
+                              f"({existing})") from None
+    targets = [folder / w for w in writes] if kind == "folder" else [Path(w) for w in (writes or [path])]
+    outputs = {os.path.realpath(t): t for t in targets}
+    for item in inputs:
+        if item is not None and os.path.realpath(item) in outputs:
+            raise OutputPathError(f"output {outputs[os.path.realpath(item)]} would overwrite the input {item}")
+    return path
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
@@ -126,16 +202,12 @@ def write_outputs(result, outdir: str | os.PathLike, inputs: dict | None = None,
     -------
     dict of str to Path
     """
-    outdir = Path(outdir)
+    outdir = check_output_path(outdir, "folder")
     outdir.mkdir(parents=True, exist_ok=True)
     # an old report next to new files would mark a half-rewritten folder as complete
     (outdir / "report.json").unlink(missing_ok=True)
-    paths = {
-        "mesh": outdir / f"registered.{mesh_format}",
-        "state": outdir / "state.npz",
-        "correspondence": outdir / "correspondence.npz",
-        "report": outdir / "report.json",
-    }
+    paths = dict(zip(("mesh", "state", "correspondence", "report"),
+                     (outdir / name for name in output_names(mesh_format))))
     if result.correspondence_faces is None:  # a target given as an SDF grid has no faces
         paths.pop("correspondence").unlink(missing_ok=True)  # none left from an older run
     atomic_write_bytes(paths["mesh"], mesh_bytes(result.vertices, result.faces, mesh_format))

@@ -1,6 +1,7 @@
 """The command line and the output folder, end to end on generated meshes."""
 
 import json
+from pathlib import Path
 import subprocess
 import sys
 
@@ -156,3 +157,81 @@ def test_progress_lines_name_the_start_and_follow_each_start_to_a_new_mode():
     lines = stream.getvalue().splitlines()
     assert [line[:20] for line in lines] == ["[rest] modes 1/3  it", "[aligned] modes 1/3 ",
                                              "[rest] modes 2/3  it", "modes 2/3  iter 3  e"]
+
+
+def _unwritable_folder(tmp_path):
+    """A folder where no file can be created: a read-only copy for a normal user, or, for
+    root (whom modes do not stop), a read-only system folder; skip when neither refuses."""
+    import os
+    import tempfile
+
+    ro = tmp_path / "read-only"
+    ro.mkdir()
+    ro.chmod(0o555)
+    for folder in (ro, Path("/sys"), Path("/proc")):
+        try:
+            fd, name = tempfile.mkstemp(dir=folder)
+        except OSError:
+            return folder
+        os.close(fd)
+        os.unlink(name)
+    pytest.skip("every folder tried here is writable")
+
+
+@pytest.mark.parametrize("case", ["existing file", "file on the way", "cannot be written", "overwrites an input"])
+@pytest.mark.parametrize("command", ["register", "run", "sdf", "render"])
+def test_a_bad_output_path_is_one_line_and_exit_2_before_any_work(pair, tmp_path, capsys, monkeypatch, case,
+                                                                   command):
+    """Each of the four bad output paths, on each command that writes: one line, exit 2,
+    before any input is read (the registration, the SDF and the drawing are never reached)."""
+    from morphmodes_vol.register import Registration
+
+    src, tgt, *_ = pair
+    a_file = tmp_path / "a_file"
+    a_file.write_text("not a folder")
+    folder_kind = command in ("register", "run")
+    out = {"existing file": a_file if folder_kind else tmp_path,
+           "file on the way": a_file / "sub" / ("out" if folder_kind else "out.npz"),
+           "cannot be written": _unwritable_folder(tmp_path) / ("out" if folder_kind else "out.npz"),
+           "overwrites an input": None}[case]
+    expected = {"existing file": "is an existing " + ("file" if folder_kind else "folder"),
+                "file on the way": "cannot be created: .* is a file",
+                "cannot be written": "cannot be (created|written)",
+                "overwrites an input": "would overwrite the input"}[case]
+    if command == "register":
+        if case == "overwrites an input":  # the source named as the registered mesh would be
+            src = src.rename(tmp_path / "registered.obj")
+            out = tmp_path
+        argv = ["register", str(src), str(tgt), "-o", str(out)]
+    elif command == "run":
+        if case == "overwrites an input":  # the target pose is the summary a run writes
+            tgt = tgt.rename(tmp_path / "summary.csv")
+            out = tmp_path
+        definition = tmp_path / "p.toml"
+        definition.write_text(f'name = "p"\ndata_dir = "{tmp_path}"\n[pairs]\nsource = "{src.name}"\n'
+                              f'targets = "{tgt.name}"\n')
+        argv = ["run", str(definition), "-o", str(out)]
+    elif command == "sdf":
+        if case == "overwrites an input":
+            tgt = tgt.rename(tmp_path / "target.npz")
+            out = tgt
+        argv = ["sdf", str(tgt), "-o", str(out)]
+    else:
+        if case == "overwrites an input":
+            out = tmp_path / "src.png"
+            src = src.rename(out)
+        argv = ["render", str(src), "-o", str(out)]
+
+    def never(*args, **kwargs):
+        raise AssertionError("work started before the output path was checked")
+
+    for name in ("as_mesh", "load_mesh"):
+        monkeypatch.setattr(f"morphmodes_vol.mesh.{name}", never)
+    monkeypatch.setattr(Registration, "__init__", never)
+    monkeypatch.setattr("morphmodes_vol.pipeline.run_pipeline", never)
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("morphmodes-vol: error: output")
+    import re
+
+    assert re.search(expected, err[0]), err[0]
