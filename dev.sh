@@ -5,16 +5,25 @@
 #   bash dev.sh setup   only set up
 #   bash dev.sh vdb-env set up .venv-vdb: the OpenVDB-capable environment (see vdb_env below)
 #   bash dev.sh test-vdb set up .venv-vdb if needed, run the OpenVDB tests (pytest -m vdb)
+#   bash dev.sh lock    refresh requirements.lock and requirements-vdb.lock (uv pip compile)
 # Set-up: checks Python >= 3.10, installs the system packages Open3D and venv need when
 # missing (as root; otherwise prints the exact command), creates .venv and installs the
-# package with its test extras. It is skipped when pyproject.toml has not changed.
+# package with its test extras, every package at the version of requirements.lock (a
+# universal lock: one pinned set per Python version, 3.10 and newer). It is redone when
+# pyproject.toml or the lock changes. LOCK= (empty) installs the newest versions instead:
+#   VENV=.venv-newest LOCK= bash dev.sh test
 set -euo pipefail
 cd "$(dirname "$0")"
 
 PY="${PYTHON:-python3}"
 VENV="${VENV:-.venv}"
+LOCK="${LOCK-requirements.lock}"
+VDB_LOCK=requirements-vdb.lock
 
 die() { echo "dev.sh: $*" >&2; exit 1; }
+
+# what an installed venv was made from: the project's requirements and the lock's pins
+install_key() { cat pyproject.toml "$@" 2>/dev/null | sha256sum | cut -d' ' -f1; }
 
 need_apt() {  # need_apt PACKAGE... : install with apt-get as root, else explain
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
@@ -49,19 +58,39 @@ setup() {
     "$PY" -m venv "$VENV"
   fi
   stamp="$VENV/.installed"
-  if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
+  if [ -n "$LOCK" ]; then
+    [ -f "$LOCK" ] || die "$LOCK not found (LOCK= installs the newest versions instead)"
+    key=$(install_key "$LOCK"); pins=(-c "$LOCK")
+  else
+    key="newest $(date +%F)"; pins=(--upgrade --upgrade-strategy eager)
+  fi
+  if [ "$(cat "$stamp" 2>/dev/null)" != "$key" ]; then
     "$VENV/bin/python" -m pip install -q --upgrade pip
-    "$VENV/bin/python" -m pip install -q -e '.[test]'
+    "$VENV/bin/python" -m pip install -q "${pins[@]}" -e '.[test]'
     "$VENV/bin/python" -c 'import open3d, igl, trimesh, scipy' \
       || die "the installed packages do not import; see the error above"
-    touch "$stamp"
+    echo "$key" > "$stamp"
   fi
+}
+
+# Refresh the locks from pyproject.toml with uv (installed into .venv for the purpose):
+# requirements.lock for every Python from 3.10, requirements-vdb.lock for the OpenVDB venv
+# (Debian's Python 3.11, NumPy < 2). Run the suite on the new lock before committing it.
+lock() {
+  [ -f "$LOCK" ] || LOCK=  # a first lock: set up with the newest versions
+  setup
+  "$VENV/bin/python" -m pip install -q uv
+  uv=("$VENV/bin/uv" pip compile pyproject.toml --extra test --extra plot --quiet)
+  "${uv[@]}" --universal --python-version 3.10 --custom-compile-command "bash dev.sh lock" -o requirements.lock
+  echo "numpy<2" > "$VENV/vdb-numpy.txt"
+  "${uv[@]}" --universal --python-version 3.11 -c "$VENV/vdb-numpy.txt" \
+    --custom-compile-command "bash dev.sh lock" -o "$VDB_LOCK"
 }
 
 # The OpenVDB backend needs Debian's python3-openvdb (PyPI's pyopenvdb has no wheel for
 # Python 3.11), whose extension is built against NumPy 1.x: with NumPy 2 it crashes the
-# process. So a second venv, $VDB_VENV, pinned to NumPy < 2, sees the system pyopenvdb
-# module through a .pth file. Fails loudly when any step is impossible.
+# process. So a second venv, $VDB_VENV, pinned by requirements-vdb.lock (NumPy < 2), sees
+# the system pyopenvdb module through a .pth file. Fails loudly when any step is impossible.
 VDB_VENV="${VDB_VENV:-.venv-vdb}"
 VDB_DIST=/usr/lib/python3/dist-packages
 vdb_env() {
@@ -90,10 +119,11 @@ vdb_env() {
   ln -sf "$so" "$VDB_VENV/system-openvdb/"
   echo "$(cd "$VDB_VENV/system-openvdb" && pwd)" > "$site/system-openvdb.pth"
   stamp="$VDB_VENV/.installed"
-  if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ] || [ .ci/vdb-constraints.txt -nt "$stamp" ]; then
+  key=$(install_key "$VDB_LOCK")
+  if [ "$(cat "$stamp" 2>/dev/null)" != "$key" ]; then
     "$VDB_VENV/bin/python" -m pip install -q --upgrade pip
-    "$VDB_VENV/bin/python" -m pip install -q -c .ci/vdb-constraints.txt -e '.[test,plot]'
-    touch "$stamp"
+    "$VDB_VENV/bin/python" -m pip install -q -c "$VDB_LOCK" -e '.[test,plot]'
+    echo "$key" > "$stamp"
   fi
   "$VDB_VENV/bin/python" -c 'from morphmodes_vol.sdf.vdb import check_openvdb; check_openvdb(); import open3d, igl, trimesh, scipy' \
     || die "the OpenVDB environment $VDB_VENV does not work; see the error above"
@@ -105,7 +135,8 @@ case "$cmd" in
   setup) setup ;;
   demo) setup; exec "$VENV/bin/morphmodes-vol" demo "$@" ;;
   test) setup; exec "$VENV/bin/python" -m pytest "$@" ;;
+  lock) lock ;;
   vdb-env) vdb_env ;;
   test-vdb) vdb_env; MORPHMODES_REQUIRE_VDB=1 exec "$VDB_VENV/bin/python" -m pytest -m vdb "$@" ;;
-  *) die "usage: bash dev.sh {demo|test|setup|vdb-env|test-vdb} [arguments passed on]" ;;
+  *) die "usage: bash dev.sh {demo|test|setup|lock|vdb-env|test-vdb} [arguments passed on]" ;;
 esac

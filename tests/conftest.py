@@ -67,7 +67,13 @@ def lumpy_sphere():
 
 @pytest.fixture
 def data_dir() -> Path:
+    """The real meshes (``../shared/data`` or ``$MORPHMODES_DATA``). Without them a test
+    skips with the reason, unless ``MORPHMODES_REQUIRE_DATA=1`` (set by ``.ci/run``, whose
+    clone always has them beside it): then it fails."""
     path = shared_data_dir()
     if path is None:
-        pytest.skip("real meshes not found: ../shared/data absent and MORPHMODES_DATA unset")
+        reason = "real meshes not found: ../shared/data absent and MORPHMODES_DATA unset"
+        if os.environ.get("MORPHMODES_REQUIRE_DATA") == "1":
+            pytest.fail(reason + " (MORPHMODES_REQUIRE_DATA=1)", pytrace=False)
+        pytest.skip(reason)
     return path
