@@ -145,7 +145,10 @@ def render_panels(
 
     ncol = columns or len(panels)
     nrow = -(-len(panels) // ncol)
-    fig = plt.figure(figsize=(panel_size * ncol + (1.0 if valued else 0), panel_size * nrow + 0.3))
+    # whole pixels, a hair over, so that every matplotlib makes the same PNG size (some round
+    # inches * dpi, others truncate it: 2.3 * 50 is 114.99999999999999)
+    pixels = np.round(np.array([panel_size * ncol + (1.0 if valued else 0), panel_size * nrow + 0.3]) * dpi)
+    fig = plt.figure(figsize=tuple((pixels + 0.01) / dpi))
     fig.subplots_adjust(left=0, right=1, bottom=0.07 if suptitle else 0, top=1 - 0.3 / fig.get_figheight(), wspace=0, hspace=0.08)
     for k, (panel, V) in enumerate(zip(panels, frames)):
         ax = fig.add_subplot(nrow, ncol, k + 1, projection="3d")
