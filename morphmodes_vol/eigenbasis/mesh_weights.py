@@ -1,16 +1,21 @@
 """Skinning weights for any source mesh a user brings: welded seams, triangle soups (STL),
-unreferenced vertices and zero-area triangles."""
+unreferenced vertices, zero-area triangles and meshes of several components."""
 
 from __future__ import annotations
 
 import logging
 
 import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import ArpackError
+from scipy.spatial import cKDTree
 
 from ..errors import MeshValidationError
 from ..mesh import bbox_diagonal, validate_mesh
 from ..repair import degenerate_faces
+from .component_coupling import component_coupling
+from .lumped_mass import lumped_mass
 from .skinning_eigenmodes import skinning_eigenmodes
 
 __all__ = ["mesh_skinning_weights"]
@@ -27,7 +32,11 @@ def mesh_skinning_weights(V, F, modes: int, seed: int = 0, weld_tolerance: float
     is: vertices closer than ``weld_tolerance`` times the bounding-box diagonal are welded
     (UV seams, STL triangle soups), triangles with a repeated corner or zero area are left
     out, and only referenced vertices enter the eigenproblem. Vertices left out get the
-    weights of the nearest vertex that entered it, so welded copies move together.
+    weights of the nearest vertex that entered it, so welded copies move together. A mesh of
+    several components has its components joined by
+    :func:`~morphmodes_vol.eigenbasis.component_coupling.component_coupling`, so that its
+    modes bend the shape rather than move its parts apart (and do not depend on how the
+    eigensolver picks a basis of the Laplacian's null space).
 
     Parameters
     ----------
@@ -62,8 +71,13 @@ def mesh_skinning_weights(V, F, modes: int, seed: int = 0, weld_tolerance: float
     n = V.shape[0]
     diag = max(bbox_diagonal(V), np.finfo(float).tiny)
     tol = weld_tolerance * diag
-    key = np.round(V / tol).astype(np.int64)
-    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    # clusters of vertices chained by pairs closer than tol (not cells of a lattice, whose
+    # boundaries would part two copies of a vertex moved by a rounding error), each welded to
+    # its lowest index
+    pairs = cKDTree(V).query_pairs(tol, output_type="ndarray")
+    _, cluster = connected_components(sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])),
+                                                    shape=(n, n)), directed=False)
+    _, first, inverse = np.unique(cluster, return_index=True, return_inverse=True)
     inverse = inverse.ravel()
     Vw = V[first]
     Fw = inverse[F]
@@ -79,8 +93,10 @@ def mesh_skinning_weights(V, F, modes: int, seed: int = 0, weld_tolerance: float
         )
     compact = np.full(Vw.shape[0], -1, dtype=np.int64)
     compact[used] = np.arange(used.size)
+    Vc, Fc = Vw[used], compact[Fw]
+    coupling = component_coupling(Vc, Fc, lumped_mass(Vc, Fc).diagonal())
     try:
-        Wc, lam = skinning_eigenmodes(Vw[used], compact[Fw], modes, seed=seed)
+        Wc, lam = skinning_eigenmodes(Vc, Fc, modes, seed=seed, coupling=coupling)
     except (ArpackError, np.linalg.LinAlgError, RuntimeError) as exc:  # no convergence, singular
         raise MeshValidationError(
             f"source: the skinning eigenproblem could not be solved ({type(exc).__name__}: {exc}); "
@@ -92,8 +108,6 @@ def mesh_skinning_weights(V, F, modes: int, seed: int = 0, weld_tolerance: float
     row = compact[inverse]
     missing = row < 0
     if missing.any():
-        from scipy.spatial import cKDTree
-
         _, nearest = cKDTree(Vw[used]).query(V[missing])
         row[missing] = nearest
     changes = {

@@ -23,7 +23,7 @@ log = logging.getLogger(__name__)
 _DENSE_LIMIT = 600
 
 
-def skinning_eigenmodes(V, F, modes: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def skinning_eigenmodes(V, F, modes: int, seed: int = 0, coupling=None) -> tuple[np.ndarray, np.ndarray]:
     """The ``modes`` smallest solutions of ``L W = M W Lambda`` (Eq. 4).
 
     ``L`` is the positive semidefinite cotangent Laplacian and ``M`` the lumped Voronoi mass
@@ -44,6 +44,9 @@ def skinning_eigenmodes(V, F, modes: int, seed: int = 0) -> tuple[np.ndarray, np
         Number of eigenmodes, ``1 <= modes <= n``.
     seed : int
         Seed of the Lanczos start vector.
+    coupling : (n, n) sparse matrix, optional
+        A positive semidefinite stiffness added to ``L`` (the join of a mesh's components,
+        :func:`~morphmodes_vol.eigenbasis.component_coupling.component_coupling`).
 
     Returns
     -------
@@ -65,6 +68,8 @@ def skinning_eigenmodes(V, F, modes: int, seed: int = 0) -> tuple[np.ndarray, np
     if not (isinstance(modes, (int, np.integer)) and 1 <= modes <= n):
         raise OptionError(f"modes={modes!r}: expected an integer in [1, {n}] for {n} vertices")
     L = cotangent_laplacian(V, F)
+    if coupling is not None:
+        L = (L + coupling).tocsc()
     M = lumped_mass(V, F)
     mass = M.diagonal()
     if not np.all(np.isfinite(L.data)) or np.any(mass <= 0) or not np.all(np.isfinite(mass)):
