@@ -24,6 +24,8 @@ __all__ = ["RegistrationOptions", "Preconditioner", "PRECONDITIONERS", "SIGN_MET
 Preconditioner = Literal["block", "none"]
 PRECONDITIONERS = typing.get_args(Preconditioner)
 SIGN_METHODS = typing.get_args(SignMethod)
+SourceSign = Literal["auto", "raycast", "winding"]
+SOURCE_SIGNS = typing.get_args(SourceSign)
 Optimizer = Literal["lm", "paper"]
 OPTIMIZERS = typing.get_args(Optimizer)
 Quadrature = Literal["full", "band"]
@@ -124,10 +126,13 @@ class RegistrationOptions:
         ``"block"`` (default) scales each mode's 3x4 block of the gradient by the inverse of
         its 4x4 Gram matrix ``[X0 1]^T diag(w_j)^2 [X0 1]`` (our one deviation from the
         paper's plain gradient step, see docs/method.md); ``"none"`` is the paper's step.
-    source_sign : {"raycast", "winding"}
-        Inside test of the deformed source at every evaluation. ``"raycast"`` (default):
-        Open3D ray parity, exact for closed sources and ~10x cheaper; ``"winding"``:
-        generalized winding number (libigl), robust for open sources (holes).
+    source_sign : {"auto", "raycast", "winding"}
+        Inside test of the deformed source at every evaluation. ``"raycast"``: Open3D ray
+        parity, exact for closed sources; ``"winding"``: generalized winding number (libigl),
+        robust for open sources (holes, a mask, parts); ``"auto"`` (default): ray parity for a
+        closed source (every edge shared by two triangles), the winding number otherwise, so
+        the choice follows the topology, which a rounding error or another triangulation of
+        the same closed surface does not change.
     occupancy_samples : int
         Rays cast (odd; majority vote) by the ``"raycast"`` inside test.
     seed : int
@@ -391,7 +396,7 @@ class RegistrationOptions:
     lm_final_iterations: int | None = None
     lm_stall_decrease: float = 0.01
     preconditioner: Preconditioner = "block"
-    source_sign: SignMethod = "raycast"
+    source_sign: SourceSign = "auto"
     occupancy_samples: int = 1
     seed: int = 0
     memory_limit_gb: float | None = 8.0
@@ -539,7 +544,7 @@ class RegistrationOptions:
         need(0 <= self.lm_stall_decrease < 1, "lm_stall_decrease", "a float in [0, 1)")
         need(self.preconditioner in PRECONDITIONERS, "preconditioner",
              f"one of {PRECONDITIONERS}")
-        need(self.source_sign in SIGN_METHODS, "source_sign", f"one of {SIGN_METHODS}")
+        need(self.source_sign in SOURCE_SIGNS, "source_sign", f"one of {SOURCE_SIGNS}")
         need(_is_int(self.occupancy_samples) and self.occupancy_samples >= 1
              and self.occupancy_samples % 2 == 1, "occupancy_samples", "a positive odd integer")
         need(_is_int(self.seed) and self.seed >= 0, "seed", "a non-negative integer")

@@ -36,6 +36,7 @@ from .repair import sdf_faces
 from .optimize import AdaptiveRun, OptimizationHistory, ProgressEvent
 from .sdf import Grid, TargetSDF, build_target_sdf, closest_points, is_target_sdf_path, load_target_sdf
 from .sdf.grid import trilinear_sample
+from .sdf.source import is_closed, resolve_sign
 from .sdf.target import TARGET_SDF_SUFFIXES, DenseTargetSDF, target_sdf_backend
 from .stages import SourceEigenbasis, TargetField
 from .two_way import reverse_correspondences, closest_point_rows
@@ -57,13 +58,6 @@ MIN_COARSE_NODES = 24
 """Fewest nodes along the longest side of the coarse pass's grid (``coarse_starts``), so
 grids under 48 nodes run one pass: at grid 32 (a coarse pass of 16 nodes) lion-05 ended at
 0.109 against 0.018 in one pass, at 48 and 64 at 0.013 and 0.017."""
-
-
-def _is_closed(F: np.ndarray) -> bool:
-    """Every undirected edge is shared by exactly two triangles (closed and edge-manifold)."""
-    edges = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
-    _, counts = np.unique(edges, axis=0, return_counts=True)
-    return bool(np.all(counts == 2))
 
 
 def _label(mesh, default: str) -> str:
@@ -208,6 +202,7 @@ class Registration:
                  *, eigenbasis: SourceEigenbasis | None = None, target_sdf: TargetField | None = None,
                  landmarks: Landmarks | str | os.PathLike | tuple | None = None):
         self.options = options if options is not None else RegistrationOptions()
+        self._asked_sign = self.options.source_sign  # "auto" is resolved per mesh below
         self.timings: dict[str, float] = {}
         self._objectives: dict = {}  # the comparison objectives' evaluators (_cached)
 
@@ -258,7 +253,9 @@ class Registration:
         # consistent orientation (the output keeps the faces as given)
         self.source_sdf_faces = sdf_faces(self.X0, self.source_faces, "source")
         self.target_sdf_faces = None if self.Y is None else sdf_faces(self.Y, self.target_faces, "target")
-        if self.options.source_sign == "raycast" and not _is_closed(self.source_sdf_faces):
+        if self.options.source_sign == "auto":  # the options of this pair say which it is
+            self.options = self.options.replace(source_sign=resolve_sign(self.source_sdf_faces, "auto"))
+        elif self.options.source_sign == "raycast" and not is_closed(self.source_sdf_faces):
             log.warning(
                 "the source mesh is not closed or has non-manifold edges (some edge is not "
                 "shared by exactly two triangles): ray-parity signs may be wrong behind its "
@@ -841,7 +838,7 @@ class Registration:
         grid = o.grid if o.two_way_grid is None else o.two_way_grid
         reverse = Registration((self.target_vertices, self.target_faces),
                                (self.source_vertices, self.source_faces),
-                               o.replace(two_way=False, grid=grid))
+                               o.replace(two_way=False, grid=grid, source_sign=self._asked_sign))
         shown = None if progress is None else (  # "[reverse: rest (coarse)] ..." and so on
             lambda e: progress(replace(e, start=f"reverse: {e.start}" if e.start else "reverse")))
         back = reverse.run(progress=shown)

@@ -235,11 +235,14 @@ def test_inconsistent_and_inverted_orientation_give_the_same_sdfs():
 def test_open_and_non_manifold_meshes_register(caplog):
     V, F, target = small_pair()
     holes = F[6:]  # three triangles removed near a pole
-    with caplog.at_level(logging.WARNING):
-        mm.Registration((V, holes), (target, F), mm.RegistrationOptions(**FAST))
+    with caplog.at_level(logging.WARNING):  # ray parity asked for an open source: a warning
+        mm.Registration((V, holes), (target, F), mm.RegistrationOptions(source_sign="raycast", **FAST))
     assert "not closed or has non-manifold edges" in caplog.text
-    r = mm.register((V, holes), (target, F), source_sign="winding", ground_truth=target, **FAST)
+    # by default (auto) an open source's inside is its winding number, a closed one's ray parity
+    r = mm.register((V, holes), (target, F), ground_truth=target, **FAST)
+    assert r.options.source_sign == "winding"
     assert r.metrics["ground_truth_error"] < 0.5 * r.metrics["identity_error"]
+    assert mm.Registration((V, F), (target, F), mm.RegistrationOptions(**FAST)).options.source_sign == "raycast"
     # an open target: its sign comes from the winding number, robust behind holes
     r = mm.register((V, F), (target, holes), ground_truth=target, **FAST)
     assert r.metrics["ground_truth_error"] < 0.5 * r.metrics["identity_error"]
@@ -249,7 +252,7 @@ def test_open_and_non_manifold_meshes_register(caplog):
     Ff = np.vstack([F, [[a, b, len(V)]]])
     caplog.clear()
     with caplog.at_level(logging.WARNING):
-        r = mm.register((Vf, Ff), (target, F), **FAST)
+        r = mm.register((Vf, Ff), (target, F), source_sign="raycast", **FAST)
     assert "non-manifold" in caplog.text
     assert np.isfinite(r.vertices).all() and r.history.energy[-1] < r.history.energy[0]
 

@@ -17,7 +17,7 @@ import numpy as np
 from ..errors import OptionError
 from .closest_point import closest_point_barycentrics
 
-__all__ = ["ClosestPoints", "SignedDistanceQuery", "closest_points", "signed_distance"]
+__all__ = ["ClosestPoints", "SignedDistanceQuery", "closest_points", "signed_distance", "is_closed", "resolve_sign"]
 
 SignMethod = Literal["raycast", "winding"]
 
@@ -131,9 +131,33 @@ class SignedDistanceQuery:
     closest: ClosestPoints
 
 
+def is_closed(F) -> bool:
+    """Whether every undirected edge of the triangles ``F (f, 3)`` is shared by exactly two
+    (closed and edge-manifold).
+
+    Examples
+    --------
+    >>> is_closed([[0, 1, 2], [0, 2, 3], [0, 3, 1], [1, 3, 2]]), is_closed([[0, 1, 2]])
+    (True, False)
+    """
+    F = np.asarray(F, dtype=np.int64)
+    edges = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    return bool(np.all(counts == 2))
+
+
+def resolve_sign(F, sign: str) -> SignMethod:
+    """``sign``, with ``"auto"`` made ray parity for a closed mesh (:func:`is_closed`) and
+    the generalized winding number otherwise."""
+    if sign == "auto":
+        return "raycast" if is_closed(F) else "winding"
+    return sign
+
+
 def signed_distance(V: np.ndarray, F: np.ndarray, Q: np.ndarray, sign: SignMethod = "raycast",
                     samples: int = 1) -> SignedDistanceQuery:
-    """Signed distance of the mesh ``(V, F)`` at ``Q (k, 3)``, negative inside.
+    """Signed distance of the mesh ``(V, F)`` at ``Q (k, 3)``, negative inside; ``sign`` as
+    :func:`inside` decides it, or ``"auto"`` (:func:`resolve_sign`).
 
     Examples
     --------
@@ -143,6 +167,7 @@ def signed_distance(V: np.ndarray, F: np.ndarray, Q: np.ndarray, sign: SignMetho
     >>> np.round(q.value, 2)
     array([-1.,  1.])
     """
+    sign = resolve_sign(F, sign)
     scene = _scene(V, F) if sign == "raycast" else None
     cp = closest_points(V, F, Q, scene=scene)
     sgn = np.where(inside(V, F, Q, sign, scene=scene, samples=samples), -1.0, 1.0)
