@@ -1,5 +1,5 @@
 # Thin aliases of dev.sh (which works without make too).
-.PHONY: setup demo test lion-table vdb-env test-vdb bench scaling
+.PHONY: setup demo test lion-table vdb-env test-vdb bench scaling robustness robustness-quick
 setup:
 	bash dev.sh setup
 demo:
@@ -16,3 +16,7 @@ bench: setup
 	.venv/bin/python scripts/bench.py
 scaling: setup
 	.venv/bin/python scripts/scaling.py
+robustness: setup
+	.venv/bin/python scripts/robustness_study.py
+robustness-quick: setup
+	.venv/bin/python scripts/robustness_study.py --quick
