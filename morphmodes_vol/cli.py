@@ -413,13 +413,18 @@ def cmd_run(args) -> int:
 
 def cmd_sdf(args) -> int:
     from .mesh import as_mesh, bbox_diagonal
+    from .pointcloud import is_point_cloud_file
+    from .register import scan_target
     from .sdf import Grid, build_target_sdf
 
     out = check_output_path(args.output, "file", inputs=[args.mesh])
     backend = target_sdf_backend(out)
     opts = RegistrationOptions()
     sign = args.target_sign or opts.target_sign
-    V, F = as_mesh(args.mesh, "mesh")
+    if is_point_cloud_file(args.mesh):  # a scan: the SDF of its Poisson surface
+        V, F = scan_target(args.mesh, opts.replace(point_sdf="poisson", grid=args.resolution))
+    else:
+        V, F = as_mesh(args.mesh, "mesh")
     pad = args.padding * bbox_diagonal(V)
     grid = Grid.covering(V.min(axis=0), V.max(axis=0), args.resolution, pad)
     t = time.perf_counter()
@@ -494,7 +499,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("register", help="register SOURCE onto TARGET")
     p.add_argument("source", help="source mesh (OBJ, PLY, OFF, STL, ...)")
-    p.add_argument("target", help="target mesh, or its SDF (.npz dense grid or .vdb level set, "
+    p.add_argument("target", help="target mesh, point cloud (PLY without faces, PCD, XYZ, PTS; normals "
+                                   "estimated when absent), or its SDF (.npz dense grid or .vdb level set, "
                                    "as `morphmodes-vol sdf` writes; no correspondence.npz then)")
     p.add_argument("-o", "--output", required=True, help="output folder")
     p.add_argument("--ground-truth", default=None,
@@ -528,7 +534,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no per-pair progress lines")
     p.set_defaults(func=cmd_run)
     p = sub.add_parser("sdf", help="write the target SDF of MESH to a .npz (dense) or .vdb (OpenVDB) file")
-    p.add_argument("mesh", help="the target mesh")
+    p.add_argument("mesh", help="the target mesh, or a point cloud (PLY, PCD, XYZ, PTS: the SDF of its "
+                                "Poisson surface)")
     p.add_argument("-o", "--output", required=True, help="output file, .npz or .vdb")
     p.add_argument("--resolution", type=int, default=d.grid,
                    help=f"nodes (dense) or voxels (vdb) along the longest side of the padded box "

@@ -16,6 +16,7 @@ __all__ = [
     "TargetSDFLoadError",
     "LandmarkError",
     "OutputPathError",
+    "PointCloudError",
 ]
 
 
@@ -56,3 +57,8 @@ class LandmarkError(MorphModesError):
 class OutputPathError(MorphModesError):
     """An output path cannot be used: a file where a folder is expected (or the reverse), a
     folder that cannot be created or written, or an output that would overwrite an input."""
+
+
+class PointCloudError(MorphModesError):
+    """A point-cloud target cannot be used: unreadable, too few or only duplicate points, NaN
+    or infinite coordinates, all on a plane or a line, or normals that cannot be had."""

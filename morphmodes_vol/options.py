@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 from .errors import OptionError
+from .sdf.points import POINT_SDF_METHODS, PointSDFMethod
 from .sdf.source import SignMethod
 from .sdf.target import TARGET_BACKENDS, TargetBackend
 
@@ -150,6 +151,13 @@ class RegistrationOptions:
         Inside test of the target, negative inside. ``"winding"`` (default, chosen by the
         holed-sphere measurement of docs/target_sdf.md): generalized winding number, right
         behind holes; ``"raycast"``: Open3D ray parity, wrong in a shadow behind each hole.
+    point_sdf : {"winding", "poisson"}
+        How a point-cloud target is made a field (:mod:`morphmodes_vol.sdf.points`):
+        ``"poisson"`` (default), its screened Poisson surface, trimmed where no point is near,
+        registered onto as a mesh (with the rigid ICP start and the descriptors a mesh
+        target has); ``"winding"``, directly, the distance to the nearest point's tangent
+        disc signed by the fast winding number of the oriented points, registered onto as an
+        SDF target.
     vdb_half_width : float
         Half width of the ``"vdb"`` band in voxels (OpenVDB's default, 3).
     landmark_weight : float
@@ -402,6 +410,7 @@ class RegistrationOptions:
     memory_limit_gb: float | None = 8.0
     target_backend: TargetBackend = "dense"
     target_sign: SignMethod = "winding"
+    point_sdf: PointSDFMethod = "poisson"
     vdb_half_width: float = 3.0
     landmark_weight: float = 1.0
     initialization: Initialization = "rigid"
@@ -550,6 +559,7 @@ class RegistrationOptions:
         need(_is_int(self.seed) and self.seed >= 0, "seed", "a non-negative integer")
         need(self.target_backend in TARGET_BACKENDS, "target_backend", f"one of {TARGET_BACKENDS}")
         need(self.target_sign in SIGN_METHODS, "target_sign", f"one of {SIGN_METHODS}")
+        need(self.point_sdf in POINT_SDF_METHODS, "point_sdf", f"one of {POINT_SDF_METHODS}")
         need(1.0 <= self.vdb_half_width <= 64.0, "vdb_half_width", "a float in [1, 64]")
         need(self.landmark_weight >= 0, "landmark_weight", "a non-negative float")
         need(self.isometry_weight >= 0, "isometry_weight", "a non-negative float")

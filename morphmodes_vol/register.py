@@ -34,15 +34,17 @@ from .options import RegistrationOptions
 from .quadrature import BandEnergy, CoarseToFine, every_other_node
 from .repair import sdf_faces
 from .optimize import AdaptiveRun, OptimizationHistory, ProgressEvent
+from .pointcloud import PointCloud, as_point_cloud, is_point_cloud_file, load_point_cloud, oriented_normals
 from .sdf import Grid, TargetSDF, build_target_sdf, closest_points, is_target_sdf_path, load_target_sdf
 from .sdf.grid import trilinear_sample
+from .sdf.points import points_target_sdf, poisson_depth, poisson_surface
 from .sdf.source import is_closed, resolve_sign
 from .sdf.target import TARGET_SDF_SUFFIXES, DenseTargetSDF, target_sdf_backend
 from .stages import SourceEigenbasis, TargetField
 from .two_way import reverse_correspondences, closest_point_rows
 from .warped_field import WarpedRestField, ZeroEnergy
 
-__all__ = ["register", "Registration", "RegistrationResult", "ground_truth_error"]
+__all__ = ["register", "Registration", "RegistrationResult", "ground_truth_error", "scan_target"]
 
 log = logging.getLogger(__name__)
 
@@ -210,6 +212,7 @@ class Registration:
         # 4 vertices: the least that determines the affine map of the first mode, and the
         # least that encloses a volume (a target needs an inside for its signed distance)
         self.source_vertices, self.source_faces = as_mesh(source, "source", min_vertices=4)
+        target = scan_target(target, self.options)
         grid_target = _as_target_sdf(target, self.options)
         if grid_target is None:
             self.target_vertices, self.target_faces = as_mesh(target, "target", min_vertices=4)
@@ -1204,6 +1207,42 @@ def _select_start(runs: list[_StartRun], factor: float) -> _StartRun:
         return runs[0]
     lowest = min(r.energy for r in finite)
     return min((r for r in finite if r.energy <= factor * lowest), key=lambda r: r.strain)
+
+
+def scan_target(target, options: RegistrationOptions | None = None):
+    """A point-cloud target (a file of :data:`~morphmodes_vol.pointcloud.POINT_EXTENSIONS`
+    without faces, or a :class:`~morphmodes_vol.pointcloud.PointCloud`) as what the
+    registration takes (``options.point_sdf``): its SDF on a grid over its padded box, in its
+    own frame (``"winding"``), or its Poisson surface as a mesh ``(V, F)`` (``"poisson"``); any
+    other target as it is.
+
+    Raises
+    ------
+    PointCloudError
+        A point cloud that cannot be read, fails :func:`~morphmodes_vol.pointcloud.as_point_cloud`
+        or has no normals that can be estimated.
+    """
+    options = options or RegistrationOptions()
+    if is_point_cloud_file(target):
+        cloud = load_point_cloud(target)
+    elif isinstance(target, PointCloud):
+        cloud = as_point_cloud(target)
+    else:
+        return target
+    t = time.perf_counter()
+    normals = oriented_normals(cloud)
+    if options.point_sdf == "poisson":
+        V, F = poisson_surface(cloud.points, normals, poisson_depth(options.resolved_target_grid))
+        log.info("target: Poisson surface of %d points, %d triangles (%.2f s)", len(cloud.points), len(F),
+                 time.perf_counter() - t)
+        return V, F
+    P = cloud.points
+    lo, hi = P.min(axis=0), P.max(axis=0)
+    grid = Grid.covering(lo, hi, options.resolved_target_grid, options.padding * float(np.linalg.norm(hi - lo)))
+    sdf = points_target_sdf(P, normals, grid, "winding")
+    sdf.extrapolate = True  # a source beyond the scan's box: the distance to the box is added
+    log.info("target: SDF of %d oriented points on %s nodes (%.2f s)", len(P), grid.shape, time.perf_counter() - t)
+    return sdf
 
 
 def _as_target_sdf(target, options: RegistrationOptions) -> TargetSDF | None:

@@ -13,7 +13,7 @@ import numpy as np
 
 from .mesh import bbox_diagonal, validate_mesh
 
-__all__ = ["jittered", "retriangulated", "densified", "noisy", "partial_view", "half_view_direction", "VARIANTS",
+__all__ = ["jittered", "retriangulated", "densified", "noisy", "partial_view", "half_view_direction", "sampled_points", "VARIANTS",
            "target_variant"]
 
 VARIANTS = ("original", "retriangulated", "dense", "noisy", "partial")
@@ -116,6 +116,33 @@ def partial_view(V, F, direction=None) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError("no triangle faces that direction")
     used, Fc = np.unique(Fk, return_inverse=True)
     return V[used], Fc.reshape(-1, 3).astype(np.int64)
+
+
+def sampled_points(V, F, count: int, noise: float = 0.0, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` points drawn uniformly by area on the surface, with the unit normals of their
+    triangles, each moved along its normal by ``N(0, (noise * diagonal)^2)``: a full scan as
+    a point cloud. Returns ``points, normals``, both ``(count, 3)``.
+
+    Examples
+    --------
+    >>> from morphmodes_vol.primitives import icosphere
+    >>> P, N = sampled_points(*icosphere(3), 2000, seed=1)
+    >>> bool(np.abs(np.linalg.norm(P, axis=1) - 1).max() < 0.01), bool((np.sum(P * N, axis=1) > 0.9).all())
+    (True, True)
+    """
+    V, F = validate_mesh(V, F, "mesh")
+    rng = np.random.default_rng(seed)
+    n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    area = np.linalg.norm(n, axis=1)
+    face = rng.choice(len(F), size=count, p=area / area.sum())
+    u, v = rng.random(count), rng.random(count)
+    flip = u + v > 1
+    u, v = np.where(flip, 1 - u, u), np.where(flip, 1 - v, v)
+    T = V[F[face]]
+    P = T[:, 0] + u[:, None] * (T[:, 1] - T[:, 0]) + v[:, None] * (T[:, 2] - T[:, 0])
+    N = n[face] / np.maximum(area[face], 1e-300)[:, None]
+    P = P + rng.normal(scale=noise * bbox_diagonal(V), size=count)[:, None] * N
+    return P, N
 
 
 def target_variant(V, F, variant: str, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:

@@ -18,9 +18,12 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import PipelineError
 from ..export import atomic_write_bytes, write_outputs
 from ..landmarks import load_landmarks
 from ..mesh import load_mesh
+from ..pointcloud import is_point_cloud_file
+from ..register import Registration, scan_target
 from ..stages import SourceEigenbasis, TargetField, source_eigenbasis, target_field
 from .cache import ProductCache, mesh_digest, product_key
 from .definition import PairSpec
@@ -84,17 +87,25 @@ def run_pair(spec: PairSpec, events: Any = None) -> dict:
         ``name``, ``state`` (``"ok"``, ``"skipped"`` or ``"failed"``), ``key`` (``None`` when
         the meshes could not be read), ``error`` (failed pairs) and ``seconds``.
     """
-    from ..register import Registration
-
     t0 = time.perf_counter()
     key = None
     try:
         _emit(events, spec.name, "load")
         Vs, Fs = load_mesh(spec.source, min_vertices=4)
-        Vt, Ft = load_mesh(spec.target)
+        if is_point_cloud_file(spec.target):  # a scan: its Poisson surface (or its SDF) is the target
+            scanned = scan_target(spec.target, spec.options)
+            if not isinstance(scanned, tuple):
+                raise PipelineError(f"{spec.target}: a point-cloud target in a pipeline needs "
+                                    "point_sdf = 'poisson' (its surface is cached as a mesh's)")
+            Vt, Ft = scanned
+        else:
+            Vt, Ft = load_mesh(spec.target)
         digests = {"source": mesh_digest(Vs, Fs), "target": mesh_digest(Vt, Ft)}
         truth = None
         if spec.ground_truth is not None:
+            if spec.ground_truth == spec.target and is_point_cloud_file(spec.target):
+                raise PipelineError(f"{spec.target}: a scan has no vertex order to be the ground truth; "
+                                    "give the intact mesh as ground_truth")
             truth = Vt if spec.ground_truth == spec.target else load_mesh(spec.ground_truth)[0]
             digests["ground_truth"] = mesh_digest(truth, np.zeros((0, 3)))
         landmarks = None
