@@ -19,7 +19,7 @@ from ..mesh import MeshLike
 from ..options import RegistrationOptions
 from .result import BaselineResult, PreparedPair, finish, prepare_pair
 
-__all__ = ["rigid_icp", "nricp", "NRICP_STEPS"]
+__all__ = ["rigid_icp", "nricp", "nricp_onto_points", "NRICP_STEPS"]
 
 log = logging.getLogger(__name__)
 
@@ -168,3 +168,55 @@ def nricp(
     method = "ricp+nricp" if rigid_first else "nricp"
     return finish(method, pair, pair.normalization.undo(np.asarray(X)), "converged", timings,
                   ground_truth, info)
+
+
+def nricp_onto_points(source: MeshLike, points: np.ndarray, *, rigid_first: bool = True, steps=NRICP_STEPS,
+                      distance_threshold: float = 0.1, eps: float = 1e-4, gamma: float = 1.0,
+                      icp_iterations: int = 100) -> np.ndarray:
+    """RICP+NRICP onto a point cloud (a scan): rigid ICP of the source vertices onto their
+    nearest points (a KD-tree, ``trimesh.registration.procrustes``), then trimesh's
+    ``nricp_amberg`` with the points as its target (closest points, no faces), both in the
+    joint normalized frame.
+
+    Parameters
+    ----------
+    source : path, trimesh.Trimesh or (V, F) tuple
+    points : (k, 3) float
+        The target points, in the source's frame.
+
+    Returns
+    -------
+    (n, 3) float
+        The registered source vertices, in the source's original frame.
+
+    Examples
+    --------
+    >>> from morphmodes_vol.primitives import icosphere
+    >>> V, F = icosphere(2)
+    >>> X = nricp_onto_points((V, F), V * 1.1 + [0.05, 0, 0])
+    >>> bool(np.abs(np.linalg.norm(X - [0.05, 0, 0], axis=1) - 1.1).max() < 0.05)
+    True
+    """
+    import trimesh
+    from scipy.spatial import cKDTree
+    from trimesh.registration import nricp_amberg, procrustes
+
+    from ..mesh import as_mesh, joint_normalization
+
+    V, F = as_mesh(source, "source", min_vertices=4)
+    P = np.asarray(points, dtype=np.float64)
+    if P.ndim != 2 or P.shape[1] != 3 or len(P) < 3 or not np.isfinite(P).all():
+        raise ValueError(f"points must be finite (k, 3) with k >= 3, got shape {P.shape}")
+    n = joint_normalization(V, P)
+    X, Y = n.apply(V), n.apply(P)
+    if rigid_first:
+        tree, old = cKDTree(Y), np.inf
+        for _ in range(icp_iterations):
+            _, j = tree.query(X)
+            _, X, cost = procrustes(X, Y[j], reflection=False, translation=True, scale=False, return_cost=True)
+            if not old - cost > 1e-10:
+                break
+            old = cost
+    X = nricp_amberg(trimesh.Trimesh(X, F, process=False), Y, steps=[list(s) for s in steps], eps=eps,
+                     gamma=gamma, distance_threshold=distance_threshold, use_faces=False)
+    return n.undo(np.asarray(X, dtype=np.float64))
