@@ -64,7 +64,7 @@ class ProgressPrinter:
 #: command-line flags whose destination is the :class:`RegistrationOptions` field of that name
 _SAME_NAMED_OPTIONS = ("target_grid", "max_iterations", "preconditioner", "quadrature", "target_backend",
                        "target_sign", "landmark_weight", "isometry_weight", "icp_start", "coarse_starts",
-                       "fine_pass", "fine_merge", "warped_pass", "warped_candidates", "warped_choice",
+                       "warped_pass", "warped_candidates", "warped_choice",
                        "warped_refine", "warped_prune_modes", "warped_prune_ratio", "warped_hops",
                        "warped_hop_iterations", "warped_hop_ratio", "warped_descriptors",
                        "warped_descriptor_weight", "field_only")
@@ -78,8 +78,6 @@ def _options_from_args(args) -> RegistrationOptions:
     changes = {"grid": grid, "modes": args.modes, "seed": args.seed}
     if args.optimizer is not None:
         changes["optimizer"] = args.optimizer
-        if args.quadrature is None:  # each optimizer with its quadrature unless asked
-            changes["quadrature"] = "band" if args.optimizer == "lm" else "full"
         if args.optimizer == "paper" and args.init is None:  # the paper starts at the rest pose
             changes["initialization"] = "none"
         if args.optimizer == "paper" and getattr(args, "isometry_weight", None) is None:  # and has Eq. (3) alone
@@ -138,9 +136,9 @@ def _add_common(p: argparse.ArgumentParser, default_grid: int, default_modes: in
                         "accurate than --fast; the flags below override it (docs/method.md, \"The "
                         "fastest setting\")")
     p.add_argument("--optimizer", choices=list(OPTIMIZERS), default=None,
-                   help=f"'lm' (Levenberg-Marquardt in the subspace, with --quadrature band) or "
+                   help=f"'lm' (Levenberg-Marquardt in the subspace) or "
                         f"'paper' (Algorithm 1's gradient descent from the rest pose: with "
-                        f"--quadrature full and --init none), unless those are given "
+                        f"--init none), unless that is given "
                         f"(default {d.optimizer!r})")
     p.add_argument("--quadrature", choices=list(QUADRATURES), default=None,
                    help=f"'full' grid (Eq. 3) or 'band': full grid near the surfaces, coarse "
@@ -155,16 +153,8 @@ def _add_common(p: argparse.ArgumentParser, default_grid: int, default_modes: in
                    help="with --init, also start Algorithm 1 from a rigid ICP alignment (default on, "
                         "off with --fast)")
     p.add_argument("--coarse-starts", action=argparse.BooleanOptionalAction, default=None,
-                   help="run the starts on every other grid node first, then the kept one on the "
-                        "grid, and keep the less strained result (default on, off with "
-                        "--optimizer paper; docs/method.md)")
-    p.add_argument("--fine-pass", action=argparse.BooleanOptionalAction, default=None,
-                   help="with --coarse-starts, run the start kept on the coarse grid again on the "
-                        "grid (default on; off keeps the coarse result and saves that run)")
-    p.add_argument("--fine-merge", action=argparse.BooleanOptionalAction, default=None,
-                   help="with --fine-pass, stop the fine run and keep the coarse result when the "
-                        "fine run comes within the merge distance of the coarse run at as many "
-                        "modes (default on; docs/method.md)")
+                   help="run the starts on every other grid node and keep the one the rule among "
+                        "starts chooses (default on, off with --optimizer paper; docs/method.md)")
     p.add_argument("--warped-pass", action=argparse.BooleanOptionalAction, default=None,
                    help="after the runs, minimize the rest source's distance field carried by the "
                         "subspace (no source queries) from every start, refine the best on the "

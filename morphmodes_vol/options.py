@@ -51,11 +51,12 @@ class RegistrationOptions:
     target_grid : int or None
         Nodes of the dense target-SDF grid along the longest side; ``None`` uses ``grid``.
     quadrature : {"full", "band"}
-        ``"full"``: every grid node, Eq. (3) as in the paper (use it with
-        ``optimizer="paper"``, see :meth:`paper_faithful`). ``"band"`` (default): every node within
-        ``band_cells`` grid spacings of either surface and one node per block of
-        ``block_factor^3`` nodes elsewhere, weighted by the block's volume
-        (:mod:`morphmodes_vol.quadrature`).
+        ``"full"`` (default): every grid node, Eq. (3) as in the paper. ``"band"`` (the fast
+        settings): every node within ``band_cells`` grid spacings of either surface and one
+        node per block of ``block_factor^3`` nodes elsewhere, weighted by the block's volume
+        (:mod:`morphmodes_vol.quadrature`): fewer closest-point queries, but the far blocks'
+        gradient is a coarse sample of the nodes', which moves the optimum where the residual
+        is small and makes the runs follow the band's refreshes (docs/decisions/0004).
     band_cells : float
         Half width of the fine band, in grid spacings.
     block_factor : int
@@ -192,26 +193,10 @@ class RegistrationOptions:
         ``init_keep_rest`` says. The volume fit of the initialization and the surface fit of
         ICP land in different basins on large pose changes (docs/method.md).
     coarse_starts : bool
-        Run the starts first on every other node of the quadrature grid (spacing ``2h``),
-        then the start kept there again on the grid itself, and keep the less strained of the
-        two results by the rule that chooses among starts (docs/method.md, "Initialization and
-        two starts", item 10).
-        ``True`` (default): on the accuracy study's 30 pairs the mean error fell from 0.0525
-        to 0.049 and no pair is worse than RICP+NRICP; ``False``: one pass on the grid, as
-        grids under 48 nodes always run.
-    fine_pass : bool
-        With ``coarse_starts``: after the coarse pass, run Algorithm 1 again from the start
-        kept there on the grid itself (``True``, default). ``False`` keeps the coarse pass's
-        result, judged on the grid, and leaves the fine grid to the warped pass's refinements
-        (docs/method.md, "Initialization and two starts", item 10).
-    fine_merge : bool
-        With ``fine_pass``: the fine run stops, and the coarse result is kept, when from
-        ``start_check_modes`` modes on its vertices come within ``start_merge_distance``
-        (RMS) of the coarse run's at as many modes: it follows the coarse run, and a second
-        opinion that agrees is not worth its cost (the rule by which two starts merge,
-        item 6). ``True`` (default): on the accuracy study's 30 pairs the fine run stopped on
-        16, the mean error stayed 0.0204 (28 errors the same) at 25.1 s per pair against
-        27.6 (docs/method.md, "Initialization and two starts", item 10).
+        Run the starts on every other node of the quadrature grid (spacing ``2h``, an eighth
+        of the points), and keep the run that the rule among starts chooses there; the grid
+        itself is the warped pass's, whose refinements run on it. ``True`` (default);
+        ``False``: the starts on the grid itself, as grids under 48 nodes always run.
     overlap_field : bool
         With ``warped_pass``: make the descriptor channels (beside the initialization), then
         minimize the warped rest field from the starts (numpy, no source query), on a second
@@ -381,7 +366,7 @@ class RegistrationOptions:
 
     grid: int = 64
     target_grid: int | None = None
-    quadrature: Quadrature = "band"
+    quadrature: Quadrature = "full"
     band_cells: float = 2.0
     block_factor: int = 2
     band_margin_cells: float = 4.0
@@ -426,8 +411,6 @@ class RegistrationOptions:
     start_choice_modes: int | None = 20
     init_lm_iterations_per_stage: int = 3
     coarse_starts: bool = True
-    fine_pass: bool = True
-    fine_merge: bool = True
     overlap_field: bool = True
     isometry_weight: float = 3e-4
     isometry_tolerance: float = 0.2
@@ -462,15 +445,15 @@ class RegistrationOptions:
 
     @classmethod
     def fast(cls) -> "RegistrationOptions":
-        """The fast setting (issue 6): the defaults on a grid of 48 instead of 64, without
-        the fine run after the coarse pass (``fine_pass=False``), without the warped pass's
+        """The fast setting (issue 6): the defaults on a grid of 48 instead of 64, on the band
+        quadrature (``quadrature="band"``), without the warped pass's
         starts from the initialization's other orientations (``warped_candidates=False``,
         which changed no result at grid 48) and without the start from rigid ICP
         (``icp_start=False``, which changed one). On the accuracy study's 30 pairs: mean
         ground-truth error 0.0257 (4.1x below RICP+NRICP), at about 40% of the defaults'
         time (docs/method.md, "The fast setting"). ``fast().replace(grid=g)`` for a grid
         study."""
-        return cls(grid=48, fine_pass=False, warped_candidates=False, icp_start=False)
+        return cls(grid=48, quadrature="band", warped_candidates=False, icp_start=False)
 
     @classmethod
     def fastest(cls) -> "RegistrationOptions":
@@ -480,12 +463,13 @@ class RegistrationOptions:
         rigid ICP or from the initialization's other orientations, no hop
         (``warped_hops=0``, ``warped_descriptors=False``); and, cheaper where the accuracy
         study's 30 errors stayed the same (one better), a band of 1.5 cells each side for
-        the refinement (``band_cells=1.5``), the field's starts compared after 6 modes
+        the refinement on the band quadrature (``quadrature="band"``, ``band_cells=1.5``), the field's starts compared after 6 modes
         (``warped_prune_modes=6``) and 4 orientations refined by the initialization
         (``init_candidates=4``). docs/method.md, "The fastest setting", has its accuracy and
         time against the defaults and NRICP."""
         return cls(field_only=True, icp_start=False, warped_candidates=False, warped_hops=0,
-                   warped_descriptors=False, band_cells=1.5, warped_prune_modes=6, init_candidates=4)
+                   warped_descriptors=False, quadrature="band", band_cells=1.5, warped_prune_modes=6,
+                   init_candidates=4)
 
     @classmethod
     def preset(cls, name: Preset) -> "RegistrationOptions":
@@ -572,8 +556,6 @@ class RegistrationOptions:
         need(isinstance(self.init_keep_rest, bool), "init_keep_rest", "True or False")
         need(isinstance(self.icp_start, bool), "icp_start", "True or False")
         need(isinstance(self.coarse_starts, bool), "coarse_starts", "True or False")
-        need(isinstance(self.fine_pass, bool), "fine_pass", "True or False")
-        need(isinstance(self.fine_merge, bool), "fine_merge", "True or False")
         need(isinstance(self.overlap_field, bool), "overlap_field", "True or False")
         need(isinstance(self.warped_pass, bool), "warped_pass", "True or False")
         need(isinstance(self.field_only, bool), "field_only", "True or False")

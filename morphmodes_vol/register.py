@@ -100,8 +100,7 @@ class RegistrationResult:
         truth was given, landmark distances when landmarks were (``initial_landmark_rms``,
         ``landmark_rms`` in target units, ``landmark_rms_fraction`` of its diagonal).
         ``start``: the start whose run was kept (``rest``, ``aligned`` or ``icp``; with
-        ``coarse_starts``, the coarse pass's runs are ``rest (coarse)`` and so on, and the
-        fine run has its start's plain name; with ``two_way``, ``reverse`` or ``reverse, both
+        ``coarse_starts``, the coarse pass's runs are ``rest (coarse)`` and so on; with ``two_way``, ``reverse`` or ``reverse, both
         sides`` when a run from the reverse registration's correspondences was kept);
         ``starts``: one entry per run (``start``; the objective ``energy`` its run ended or
         was last judged with, on every node of the grid (``energy_grid`` ``"fine"``) or of the
@@ -111,8 +110,7 @@ class RegistrationResult:
         ``energy_after_modes`` modes (both ``None`` and ``energy`` NaN when it never was);
         its ``edge_strain`` when it ended or stopped; ``evaluations``; and
         ``stopped_after_modes`` / ``stop_reason``, ``merged``, ``outstretched``,
-        ``not chosen`` or, for the fine run, ``merged with the coarse run`` (``fine_merge``),
-        when it was stopped early; ``None`` otherwise); ``init_*`` and
+        ``not chosen``, when it was stopped early; ``None`` otherwise); ``init_*`` and
         ``icp_*``: the two alignments (:meth:`InitialAlignment.summary`,
         :meth:`IcpAlignment.summary`). Cost: ``evaluations_all_starts`` (every run's
         source-SDF evaluations; ``coarse_evaluations_all_starts`` and
@@ -441,12 +439,14 @@ class Registration:
         """Whether a run's own final energy is already the objective on the full grid."""
         return self.options.quadrature == "full" and self.options.coarse_modes == 0
 
-    def _comparable_energy(self, out) -> float:
-        """The objective of a run's result (Eq. 3 plus the isometry prior and landmarks
-        when on) with Eq. (3) on the full grid: a band quadrature differs per run."""
-        if self._runs_on_full_grid():
-            return float(out.final.energy)
-        return self._objective(out.vertices)
+    def _comparable_energy(self, r: "_StartRun") -> float:
+        """The objective of a finished run's result (Eq. 3 plus the isometry prior and
+        landmarks when on) with Eq. (3) on the full grid: its own final energy when it ran
+        there, else evaluated (a band quadrature differs per run; the coarse pass runs on
+        every other node)."""
+        if self._runs_on_full_grid() and r.objective is None:
+            return float(r.result.final.energy)
+        return self._objective(r.result.vertices)
 
     def _objective(self, X: np.ndarray) -> float:
         """The objective at the vertices ``X (n, 3)`` (normalized frame) with Eq. (3) on
@@ -468,7 +468,7 @@ class Registration:
         return self._objectives[key]
 
     def _run_starts(self, starts, progress, energy=None, objective=None,
-                    judge: bool = True, follow: "_StartRun | None" = None) -> list["_StartRun"]:
+                    judge: bool = True) -> list["_StartRun"]:
         """Algorithm 1 from every start, advanced in lockstep one stage (mode) at a time.
 
         After each stage from ``start_check_modes`` on, a run stops early when another
@@ -488,10 +488,7 @@ class Registration:
         :meth:`_coarse_objective`, and the report names the grid accordingly). A run that
         ends is judged by :meth:`_objective` whatever ``objective`` is; ``judge=False`` (a
         lone run that nothing is chosen against) keeps its own final energy instead, on its
-        quadrature, and saves that evaluation. ``follow``: the coarse run that a fine run
-        started like (``fine_merge``): every run stops once it is within
-        ``start_merge_distance`` of it at as many modes (:meth:`_merged_with`). Each run keeps
-        its coefficients after every stage (``_StartRun.path``) for such a comparison.
+        quadrature, and saves that evaluation.
         """
         o = self.options
         live = []
@@ -508,9 +505,6 @@ class Registration:
             while live:
                 for r in live:
                     r.run.advance()
-                    r.path[r.run.stage] = r.run.T.copy()
-                    if follow is not None and not r.run.done:
-                        self._merged_with(r, follow)
                 going = [r for r in live if not r.run.done]
                 stage = going[0].run.stage if going else 0
                 if len(going) > 1 and stage >= o.start_check_modes:
@@ -534,27 +528,11 @@ class Registration:
         r.points_queried = _points_queried(r.energy_term)
         if r.stopped is None and not judge:
             r.energy, r.judged = float(r.result.final.energy), r.run.stage
-            r.energy_grid = "fine" if self._runs_on_full_grid() else "own"
+            r.energy_grid = "fine" if self._runs_on_full_grid() and r.objective is None else "own"
         elif r.stopped is None:  # a stopped run keeps the objective it was judged by (or NaN)
-            r.energy = self._comparable_energy(r.result)
+            r.energy = self._comparable_energy(r)
             r.judged, r.energy_grid = r.run.stage, "fine"
         r.run = r.energy_term = r.vertices = r.objective = None
-
-    def _merged_with(self, r: "_StartRun", followed: "_StartRun") -> bool:
-        """``fine_merge``: whether the fine run ``r`` has come within ``start_merge_distance``
-        (RMS) of the coarse run ``followed`` at the same number of modes, from
-        ``start_check_modes`` on; marks it stopped (*merged with the coarse run*)."""
-        o = self.options
-        stage = r.run.stage
-        if stage < o.start_check_modes or stage not in followed.path:
-            return False
-        distance = _rms(self._state_of(r) - self.basis.deform(followed.path[stage]))
-        if not distance < o.start_merge_distance:
-            return False
-        r.stopped, r.reason = stage, "merged with the coarse run"
-        log.info("after %d modes the %s run stops: within %.3g (RMS) of the %s run at as many modes",
-                 stage, r.label, distance, followed.label)
-        return True
 
     def _state_of(self, r: "_StartRun") -> np.ndarray:
         """A running start's vertices ``(n, 3)`` now, its edge strain left in ``r.strain``;
@@ -867,26 +845,18 @@ class Registration:
         return back, runs, report
 
     def _passes(self, starts, progress) -> tuple["_StartRun", list["_StartRun"]]:
-        """Algorithm 1 from the starts: with ``coarse_starts``, every start on the coarse grid,
-        then (``fine_pass``) the kept one again on the grid, the less strained result kept;
-        else every start on the grid. Returns the run chosen and every run."""
+        """Algorithm 1 from the starts: with ``coarse_starts``, every start on the coarse grid
+        (every other node), else on the grid. Returns the run chosen and every run."""
         factor = self.options.select_energy_factor
         coarse_pass = self.options.coarse_starts and max(self.quadrature.shape) >= 2 * MIN_COARSE_NODES
         if self.options.coarse_starts and not coarse_pass:
             log.info("grid of %d nodes: too coarse for a coarse pass (coarse_starts)", max(self.quadrature.shape))
         if coarse_pass:
-            # every start on the coarse grid, then the kept one again on the fine grid; the
-            # less strained of the two results is kept (docs/method.md, "Initialization and
-            # two starts", item 10)
+            # every start on the coarse grid; the grid itself is the warped pass's, whose
+            # refinements run on it (docs/decisions/0004)
             coarse = [(label + COARSE_SUFFIX, start, options) for label, start, options in starts]
             runs = self._run_starts(coarse, progress, self.coarse_energy, self._coarse_objective)
-            kept = _select_start([r for r in runs if r.stopped is None], factor)
-            if self.options.fine_pass:
-                runs += self._run_starts([starts[runs.index(kept)]], progress,  # runs keep the starts' order
-                                         follow=kept if self.options.fine_merge else None)
-                chosen = kept if runs[-1].stopped is not None else _select_start([kept, runs[-1]], factor)
-            else:
-                chosen = kept
+            chosen = _select_start([r for r in runs if r.stopped is None], factor)
         else:
             # a lone run is not compared with anything (unless two_way compares it with the
             # run from the reverse registration): no objective on the full grid
@@ -1144,8 +1114,8 @@ class _WarpedFields:
 class _StartRun:
     """Algorithm 1 from one start: its result, SDF-query time, full-grid objective, edge
     strain; while it runs, its :class:`AdaptiveRun` and evaluator; ``stopped``: the modes after
-    which it was stopped early (``reason``: ``merged``, ``outstretched``, ``not chosen`` or ``merged
-    with the coarse run``), else ``None``."""
+    which it was stopped early (``reason``: ``merged``, ``outstretched`` or ``not chosen``), else
+    ``None``."""
 
     label: str
     result: object
@@ -1162,7 +1132,6 @@ class _StartRun:
     objective: Callable[[np.ndarray], float] | None = None  # judged by while running (None: fine grid)
     points_queried: int = 0  # points its evaluator sent to the closest-point queries
     energy_grid: str | None = None  # where ``energy`` was computed: "fine", "coarse" (None: never)
-    path: dict = field(default_factory=dict)  # stage -> coefficients T (m, 3, 4) after it
 
 
 def _points_queried(energy) -> int:

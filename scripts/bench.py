@@ -305,11 +305,11 @@ def main() -> int:
     ap.add_argument("--set", nargs="*", default=[], metavar="OPTION=VALUE",
                     help="override options of every run of ours, e.g. --set grid=48")
     ap.add_argument("--methods", nargs="*", default=["default", "lm", "paper", "nricp"],
-                    choices=["default", "fast", "fastest", "no-fine-pass", "no-descriptors", "no-warped", "two-way", "lm",
+                    choices=["default", "fast", "fastest", "no-descriptors", "no-warped", "two-way", "lm",
                              "paper", "nricp"],
                     help="default: RegistrationOptions(); fast: --fast, RegistrationOptions.fast(); "
                          "fastest: --fastest, RegistrationOptions.fastest(); "
-                         "no-fine-pass: --no-fine-pass; no-descriptors: --no-warped-descriptors, "
+                         "no-descriptors: --no-warped-descriptors, "
                          "no-warped: --no-warped-pass and two-way: "
                          "--two-way (not run unless named); lm: --init none --no-coarse-starts "
                          "(one run from the rest pose); paper: RegistrationOptions.paper_faithful(); nricp: trimesh")
@@ -338,9 +338,6 @@ def main() -> int:
             results["ours, --fast"] = _in_child(run_ours, source, target, target, overrides, "fast")
         if "fastest" in args.methods:  # RegistrationOptions.fastest()
             results["ours, --fastest"] = _in_child(run_ours, source, target, target, overrides, "fastest")
-        if "no-fine-pass" in args.methods:  # the coarse pass's result without the fine run
-            results["ours, --no-fine-pass"] = _in_child(run_ours, source, target, target,
-                                                        {"fine_pass": False, **overrides})
         if "no-descriptors" in args.methods:  # the default until 2026-12-01 (s27)
             results["ours, --no-warped-descriptors"] = _in_child(run_ours, source, target, target,
                                                                  {"warped_descriptors": False, **overrides})

@@ -103,7 +103,7 @@ def test_demo_runs_without_shared_data(tmp_path, capsys):
     assert str(out) in printed and "ground-truth error" in printed
 
 
-def test_optimizer_flag_brings_its_quadrature_unless_given():
+def test_options_from_the_flags_and_the_presets():
     from morphmodes_vol.cli import _options_from_args, build_parser
     from morphmodes_vol.options import RegistrationOptions as mm_options
 
@@ -111,28 +111,23 @@ def test_optimizer_flag_brings_its_quadrature_unless_given():
         return _options_from_args(build_parser().parse_args(["register", "s.obj", "t.obj", "-o", "out", *flags]))
 
     default = options()
-    assert (default.optimizer, default.quadrature, default.initialization) == ("lm", "band", "rigid")
+    assert (default.optimizer, default.quadrature, default.initialization) == ("lm", "full", "rigid")
     paper = options("--optimizer", "paper")
     assert paper == mm_options().paper_faithful().replace(modes=paper.modes, grid=paper.grid)
     assert options("--optimizer", "paper", "--init", "rigid").initialization == "rigid"
     assert default.coarse_starts and not paper.coarse_starts
     assert not options("--no-coarse-starts").coarse_starts
-    assert default.fine_pass == mm_options().fine_pass
-    assert options("--fine-pass").fine_pass and not options("--no-fine-pass").fine_pass
-    assert default.fine_merge and not options("--no-fine-merge").fine_merge
     assert options("--optimizer", "paper", "--coarse-starts").coarse_starts
     # --fast is RegistrationOptions.fast() (a preset of four options), which the other flags override
     quick = options("--fast")
     assert quick == mm_options.fast().replace(modes=quick.modes)
     assert (quick.grid, default.grid) == (mm_options.fast().grid, mm_options().grid)
-    assert options("--fast", "--fine-pass").fine_pass and options("--fast", "--grid", "64").grid == 64
+    assert options("--fast", "--quadrature", "full").quadrature == "full" and options("--fast", "--grid", "64").grid == 64
     assert options("--fast", "--icp-start").icp_start and not options("--no-icp-start").icp_start
     with pytest.raises(OptionError, match="--fast and --optimizer paper"):
         options("--fast", "--optimizer", "paper")
-    fast = options("--optimizer", "lm")
-    assert (fast.optimizer, fast.quadrature) == ("lm", "band")
-    mixed = options("--optimizer", "lm", "--quadrature", "full")
-    assert (mixed.optimizer, mixed.quadrature) == ("lm", "full")
+    mixed = options("--optimizer", "lm", "--quadrature", "band")
+    assert (mixed.optimizer, mixed.quadrature) == ("lm", "band")
 
 
 def test_progress_lines_name_the_start_and_follow_each_start_to_a_new_mode():

@@ -540,156 +540,53 @@ def test_the_coarse_pass_compares_running_starts_on_its_own_grid(monkeypatch):
     assert kept.energy == pytest.approx(fine(kept.result.vertices), rel=1e-12)
 
     # a registration: the three starts judged on the coarse grid after 2 modes, then the
-    # coarse pass's kept run and the fine run on the fine grid
+    # coarse pass's kept run on the fine grid when it ends
     calls.clear()
     monkeypatch.setattr(reg, "_coarse_objective", coarse)
     starts = reg.run().metrics["starts"]
-    assert calls == ["coarse"] * 3 + ["fine"] * 2
+    assert calls == ["coarse"] * 3 + ["fine"]
     # the report says which grid each start's energy is on, and after how many modes
     assert [(s["energy_grid"], s["energy_after_modes"]) for s in starts if s["stopped_after_modes"]] \
         == [("coarse", 2)] * 2
     assert [(s["energy_grid"], s["energy_after_modes"]) for s in starts if not s["stopped_after_modes"]] \
-        == [("fine", 3)] * 2
+        == [("fine", 3)]
 
 
-def test_coarse_starts_run_every_start_coarse_then_the_kept_one_on_the_grid():
-    """The coarse pass runs the three starts on every other node; the start it keeps runs
-    again on the grid, exactly as a one-pass registration from that start would; the result
-    kept is the selection rule's choice between the two."""
-    from morphmodes_vol.register import _select_start, _StartRun
-
+def test_the_coarse_pass_result_is_kept_by_the_rule_among_starts():
+    """With ``coarse_starts``, every start runs on every other node, each run is judged on the
+    grid itself, and the run the rule among starts (:func:`_select_start`) picks is the result:
+    no run on the grid follows."""
     X, F = asymmetric_blob()
     Y = bend(X, 0.6, axis=2, towards=0) + [0.03, 0.0, 0.0]
     opts = mm.RegistrationOptions(grid=48, modes=3, start_check_modes=99, warped_pass=False)
-    r = mm.register((X, F), (Y, F), opts, ground_truth=Y)
-    starts = r.metrics["starts"]
-    labels = [s["start"] for s in starts]
-    assert labels[:3] == ["rest (coarse)", "aligned (coarse)", "icp (coarse)"] and len(labels) == 4
-
-    def as_run(s):
-        return _StartRun(s["start"], None, 0.0, s["energy"], s["edge_strain"])
-
-    coarse_kept = _select_start([as_run(s) for s in starts[:3]], opts.select_energy_factor)
-    assert labels[3] == coarse_kept.label.removesuffix(" (coarse)")
-    kept = _select_start([coarse_kept, as_run(starts[3])], opts.select_energy_factor)
-    assert r.metrics["start"] == kept.label
-    assert r.evaluations == sum(s["evaluations"] for s in starts)
-    assert r.metrics["coarse_evaluations_all_starts"] == sum(s["evaluations"] for s in starts[:3])
-
-    # from the rest pose alone: the fine run is the one-pass registration
-    none = opts.replace(initialization="none")
-    two = mm.register((X, F), (Y, F), none)
-    lone = mm.Registration((X, F), (Y, F), none.replace(coarse_starts=False))
-    one = lone.run()
-    assert [s["start"] for s in two.metrics["starts"]] == ["rest (coarse)", "rest"]
-    fine, (alone,) = two.metrics["starts"][1], one.metrics["starts"]
-    assert fine["evaluations"] == alone["evaluations"]
-    # the lone run reports its own final energy (it is compared with nothing); the fine
-    # run's is the objective on the full grid, at the same vertices
-    at_one = lone._objective(lone.normalization.apply(one.vertices))
-    assert fine["energy"] == pytest.approx(at_one, rel=1e-12)
-    if two.metrics["start"] == "rest":
-        np.testing.assert_array_equal(two.vertices, one.vertices)
-    # a grid too coarse to halve: one pass
-    small = mm.register((X, F), (Y, F), none.replace(grid=40))
-    assert [s["start"] for s in small.metrics["starts"]] == ["rest"]
-
-
-def test_without_the_fine_pass_the_coarse_pass_result_is_kept():
-    """``fine_pass=False``: the coarse pass runs as with it, and its kept run is the result
-    (judged on the grid), with none of the fine run's evaluations."""
-    X, F = asymmetric_blob()
-    Y = bend(X, 0.6, axis=2, towards=0) + [0.03, 0.0, 0.0]
-    opts = mm.RegistrationOptions(grid=48, modes=3, start_check_modes=99, warped_pass=False)
-    both = mm.register((X, F), (Y, F), opts)
-    coarse = mm.register((X, F), (Y, F), opts.replace(fine_pass=False))
-    labels = [s["start"] for s in coarse.metrics["starts"]]
-    assert labels == [s["start"] for s in both.metrics["starts"]][:3]
-    assert all(label.endswith(" (coarse)") for label in labels)
-    # the same coarse runs, judged on the same grid
-    for a, b in zip(coarse.metrics["starts"], both.metrics["starts"][:3]):
-        assert (a["evaluations"], a["energy_grid"]) == (b["evaluations"], "fine")
-        assert a["energy"] == pytest.approx(b["energy"], rel=1e-12)
-    assert coarse.evaluations == both.evaluations - both.metrics["starts"][3]["evaluations"]
+    reg = mm.Registration((X, F), (Y, F), opts)
+    out = reg.run()
+    labels = [s["start"] for s in out.metrics["starts"]]
+    assert labels == ["rest (coarse)", "aligned (coarse)", "icp (coarse)"]
+    assert all(s["energy_grid"] == "fine" for s in out.metrics["starts"])
     from morphmodes_vol.register import _select_start, _StartRun
 
     kept = _select_start([_StartRun(s["start"], None, 0.0, s["energy"], s["edge_strain"])
-                          for s in coarse.metrics["starts"]], opts.select_energy_factor)
-    assert coarse.metrics["start"] == kept.label
-    with pytest.raises(mm.OptionError, match="fine_pass"):
-        mm.RegistrationOptions(fine_pass=1)
+                          for s in out.metrics["starts"]], opts.select_energy_factor)
+    assert out.metrics["start"] == kept.label
+    # judged on the grid itself, not on the coarse grid it ran on
+    assert kept.energy == pytest.approx(reg._objective(reg.normalization.apply(out.vertices)), rel=1e-9)
+    # a grid too coarse to halve: one pass
+    small = mm.register((X, F), (Y, F), opts.replace(grid=40, initialization="none"))
+    assert [s["start"] for s in small.metrics["starts"]] == ["rest"]
+    for gone in ("fine_pass", "fine_merge"):
+        with pytest.raises(TypeError):
+            mm.RegistrationOptions(**{gone: True})
 
 
-def test_the_fine_run_stops_when_it_follows_the_coarse_run():
-    """``fine_merge``: the fine run stops, and the coarse pass's result is kept, once it is
-    within ``start_merge_distance`` of the coarse run at as many modes; the coarse pass is the
-    same either way, and without the rule the fine run runs to the end."""
-    X, F = asymmetric_blob()
-    Y = bend(X, 0.6, axis=2, towards=0) + [0.03, 0.0, 0.0]
-    opts = mm.RegistrationOptions(grid=48, modes=5, start_check_modes=2, warped_pass=False)
-    assert opts.fine_merge  # the default
-    merged = mm.register((X, F), (Y, F), opts)
-    whole = mm.register((X, F), (Y, F), opts.replace(fine_merge=False))
-    never = mm.register((X, F), (Y, F), opts.replace(start_merge_distance=0.0))
-    *coarse, fine = merged.metrics["starts"]
-    # this pair's fine run follows its coarse run from the first check on
-    assert fine["stop_reason"] == "merged with the coarse run"
-    assert fine["stopped_after_modes"] == opts.start_check_modes
-    kept = next(s for s in coarse if s["stopped_after_modes"] is None)
-    assert fine["start"] + " (coarse)" == kept["start"] == merged.metrics["start"]
-    assert [(s["start"], s["evaluations"]) for s in whole.metrics["starts"][:-1]] == \
-        [(s["start"], s["evaluations"]) for s in coarse]
-    last = whole.metrics["starts"][-1]
-    assert last["start"] == fine["start"] and last["stopped_after_modes"] is None
-    assert last["evaluations"] > fine["evaluations"]
-    assert whole.evaluations - merged.evaluations == last["evaluations"] - fine["evaluations"]
-    # a merge distance of 0 merges nothing (the coarse starts run on too)
-    assert all(s["stop_reason"] != "merged with the coarse run" for s in never.metrics["starts"])
-    with pytest.raises(mm.OptionError, match="fine_merge"):
-        mm.RegistrationOptions(fine_merge="yes")
-
-
-def test_the_fine_run_merges_below_the_distance_from_the_check_on():
-    """``Registration._merged_with`` by hand: a fine run whose vertices are the followed
-    run's moved by a translation ``t`` (mode 0 is constant: ``T_0`` gains ``t / w_0``) is at
-    RMS distance ``|t|``; it merges when that is below ``start_merge_distance``, from
-    ``start_check_modes`` modes on, at a number of modes the followed run reached."""
-    from types import SimpleNamespace
-
-    from morphmodes_vol.register import _StartRun
-
-    X, F = asymmetric_blob()
-    opts = mm.RegistrationOptions(grid=24, modes=4, start_check_modes=2, start_merge_distance=0.005)
-    reg = mm.Registration((X, F), (X + [0.02, 0.0, 0.0], F), opts)
-    rng = np.random.default_rng(3)
-    Ta = 0.01 * rng.standard_normal((2, 3, 4))
-    followed = _StartRun("aligned (coarse)", None, 0.0, 0.0, 0.0, path={1: Ta[:1], 2: Ta})
-
-    def fine_at(stage, t):
-        Tb = Ta[:stage].copy()
-        Tb[0, :, 3] += np.asarray(t) / reg.weights[0, 0]
-        run = SimpleNamespace(stage=stage, vertices=reg.basis.deform(Tb))
-        return _StartRun("aligned", None, 0.0, 0.0, 0.0, run=run)
-
-    near = fine_at(2, [0.0, 0.003, 0.0041])  # |t| = 0.00508
-    assert np.isclose(np.sqrt(np.mean(np.sum((near.run.vertices - reg.basis.deform(Ta)) ** 2, 1))), 0.00508,
-                      rtol=1e-3)
-    assert not reg._merged_with(near, followed) and near.stopped is None
-    inside = fine_at(2, [0.0, 0.003, 0.0039])  # |t| = 0.00492
-    assert reg._merged_with(inside, followed)
-    assert (inside.stopped, inside.reason) == (2, "merged with the coarse run")
-    assert not reg._merged_with(fine_at(1, [0.0, 0.0, 0.0]), followed)  # before the check
-    beyond = fine_at(2, [0.0, 0.0, 0.0])
-    assert not reg._merged_with(beyond, _StartRun("x", None, 0.0, 0.0, 0.0, path={1: Ta[:1]}))
-
-
-def test_the_fast_setting_is_the_defaults_without_the_fine_run_and_the_other_orientations():
-    """``RegistrationOptions.fast()``: the defaults but ``grid``, ``fine_pass``,
+def test_the_fast_setting_is_the_defaults_on_the_band_without_the_other_orientations():
+    """``RegistrationOptions.fast()``: the defaults but ``grid``, ``quadrature``,
     ``warped_candidates`` and ``icp_start``; a registration with it has the coarse runs from
     the rest pose and the aligned start only, and its warped pass starts from those alone."""
     fast, default = mm.RegistrationOptions.fast(), mm.RegistrationOptions()
-    assert fast.grid < default.grid and not (fast.fine_pass or fast.warped_candidates or fast.icp_start)
-    assert fast.replace(grid=default.grid, fine_pass=True, warped_candidates=True, icp_start=True) == default
+    assert fast.grid < default.grid and not (fast.warped_candidates or fast.icp_start)
+    assert (fast.quadrature, default.quadrature) == ("band", "full")
+    assert fast.replace(grid=default.grid, quadrature="full", warped_candidates=True, icp_start=True) == default
     X, F = asymmetric_blob()
     Y = bend(X, 0.6, axis=2, towards=0) + [0.03, 0.0, 0.0]
     out = mm.register((X, F), (Y, F), fast.replace(grid=48, modes=3, warped_descriptors=False))
@@ -755,7 +652,7 @@ def test_a_lone_run_is_not_judged_on_the_full_grid():
     X, F = asymmetric_blob()
     Y = bend(X, 0.5, axis=2, towards=0)
     opts = mm.RegistrationOptions(grid=24, modes=3, initialization="none", coarse_starts=False,
-                                  warped_pass=False)
+                                  warped_pass=False, quadrature="band")
     reg = mm.Registration((X, F), (Y, F), opts)
     r = reg.run()
     assert r.metrics["comparison_evaluations"] == 0

@@ -254,7 +254,7 @@ def test_registration_onto_a_saved_target_sdf_matches_the_mesh_target(tmp_path):
     # measured), not by the target's offset of ~5 (a file in the normalized frame)
     diag = np.linalg.norm(np.ptp(target[0], axis=0))
     assert np.abs(on_file.vertices - on_mesh.vertices).max() < 0.02 * diag
-    assert on_file.metrics["ground_truth_error"] == pytest.approx(on_mesh.metrics["ground_truth_error"], rel=0.05)
+    assert on_file.metrics["ground_truth_error"] == pytest.approx(on_mesh.metrics["ground_truth_error"], rel=0.1)
 
 
 # --- the vdb backend --------------------------------------------------------------------

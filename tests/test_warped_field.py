@@ -370,7 +370,9 @@ def test_a_candidate_that_ties_with_a_start_is_not_kept():
     r = mm.register((V, F), (target, F), grid=32, modes=6, ground_truth=target)
     w = r.metrics["warped_pass"]
     assert not w["kept_before_hops"].startswith("warped: candidate")
-    assert r.metrics["ground_truth_error"] < 0.05
+    # the right end (the wrong one is above 0.5); a twist about the axis, which the SDF
+    # cannot see on a capsule, is left free
+    assert r.metrics["ground_truth_error"] < 0.1
     loose = mm.register((V, F), (target, F), grid=32, modes=6, ground_truth=target, warped_candidate_ratio=1.0)
     # the tie, lost (and no hop finds the way back to the right end)
     assert loose.metrics["warped_pass"]["kept_before_hops"].startswith("warped: candidate")
@@ -461,11 +463,11 @@ def test_field_only_options_and_the_fastest_flag():
         mm.RegistrationOptions(field_only=True, warped_pass=False)
     fastest = mm.RegistrationOptions.fastest()
     assert mm.RegistrationOptions.preset("fastest") == fastest
-    # the defaults without the runs, the ICP start, the other orientations and the hops, with
-    # a narrower band, earlier pruning and fewer refined orientations
+    # the defaults without the runs, the ICP start, the other orientations and the hops, on
+    # a narrower band quadrature, with earlier pruning and fewer refined orientations
     assert fastest.replace(field_only=False, icp_start=True, warped_candidates=True, warped_hops=1,
-                           warped_descriptors=True, band_cells=2.0, warped_prune_modes=8,
-                           init_candidates=6) == mm.RegistrationOptions()
+                           warped_descriptors=True, quadrature="full", band_cells=2.0,
+                           warped_prune_modes=8, init_candidates=6) == mm.RegistrationOptions()
     for flags, want in ((["--fastest"], fastest), (["--fastest", "--grid", "32"], fastest.replace(grid=32)),
                         (["--fastest", "--warped-hops", "1"], fastest.replace(warped_hops=1)),
                         (["--field-only"], mm.RegistrationOptions(field_only=True))):
