@@ -63,7 +63,7 @@ class ProgressPrinter:
 
 #: command-line flags whose destination is the :class:`RegistrationOptions` field of that name
 _SAME_NAMED_OPTIONS = ("target_grid", "max_iterations", "preconditioner", "quadrature", "target_backend",
-                       "target_sign", "landmark_weight", "isometry_weight", "icp_start", "coarse_starts",
+                       "target_sign", "landmark_weight", "isometry_weight", "coarse_starts",
                        "warped_pass", "warped_candidates", "warped_choice",
                        "warped_refine", "warped_prune_modes", "warped_prune_ratio", "warped_hops",
                        "warped_hop_iterations", "warped_hop_ratio", "warped_descriptors",
@@ -125,8 +125,8 @@ def _add_common(p: argparse.ArgumentParser, default_grid: int, default_modes: in
     p.add_argument("--max-iterations", type=int, default=None,
                    help=f"cap on gradient steps over all stages (default {d.max_iterations})")
     p.add_argument("--fast", action="store_true",
-                   help="the fast setting, RegistrationOptions.fast(): grid 48, no fine run after the "
-                        "coarse pass, no ICP start, the warped pass from the starts only; under half the "
+                   help="the fast setting, RegistrationOptions.fast(): grid 48, the band quadrature, "
+                        "the warped pass from the starts only; under half the "
                         "time, a little less accurate; the flags below override it (docs/method.md, "
                         "\"The fast setting\")")
     p.add_argument("--fastest", action="store_true",
@@ -149,9 +149,6 @@ def _add_common(p: argparse.ArgumentParser, default_grid: int, default_modes: in
                    help="global alignment before the optimization: a rigid motion or similarity "
                         "minimizing the SDF energy from several orientations (default "
                         f"{d.initialization}; docs/method.md)")
-    p.add_argument("--icp-start", action=argparse.BooleanOptionalAction, default=None,
-                   help="with --init, also start Algorithm 1 from a rigid ICP alignment (default on, "
-                        "off with --fast)")
     p.add_argument("--coarse-starts", action=argparse.BooleanOptionalAction, default=None,
                    help="run the starts on every other grid node and keep the one the rule among "
                         "starts chooses (default on, off with --optimizer paper; docs/method.md)")
@@ -239,8 +236,6 @@ def _summary(result, paths) -> str:
                      f"{m['init_scale']:.3f}, {m['init_evaluations']} evaluations of the source field "
                      f"({m['init_field_nodes']} nodes), "
                      f"{result.timings['initialize']:.1f}s")
-    if "icp_iterations" in m:
-        lines.append(f"ICP alignment: rotation {m['icp_rotation_deg']:.1f} deg, {m['icp_iterations']} iterations")
     if len(m.get("starts", [])) > 1:
         lines.append("starts: " + "; ".join(
             f"{s['start']} " + (f"stopped after {s['stopped_after_modes']} modes ({s['stop_reason']})"

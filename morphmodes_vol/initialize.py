@@ -37,10 +37,8 @@ Algorithm 1:
    constant mode, so ``T_0 = (A - [I 0]) / w_0``), which then goes on with a full affine
    map and the deformation modes from there.
 
-A second alignment, :func:`icp_align`, fits the source's *vertices* to the target's *surface*
-(rigid ICP from the rest pose, as the RICP+NRICP baseline does): a one-sided surface fit
-whose basin differs from the volume fit's, and the start of the third run of
-:meth:`morphmodes_vol.Registration.run` (``icp_start``; docs/method.md).
+:func:`icp_align` fits the source's *vertices* to the target's *surface* (rigid ICP from
+the rest pose): the rigid step of the RICP+NRICP baseline (:mod:`morphmodes_vol.baselines`).
 """
 
 from __future__ import annotations

@@ -155,8 +155,7 @@ class RegistrationOptions:
     point_sdf : {"winding", "poisson"}
         How a point-cloud target is made a field (:mod:`morphmodes_vol.sdf.points`):
         ``"poisson"`` (default), its screened Poisson surface, trimmed where no point is near,
-        registered onto as a mesh (with the rigid ICP start and the descriptors a mesh
-        target has); ``"winding"``, directly, the distance to the nearest point's tangent
+        registered onto as a mesh (with the descriptors a mesh target has); ``"winding"``, directly, the distance to the nearest point's tangent
         disc signed by the fast winding number of the oriented points, registered onto as an
         SDF target.
     vdb_half_width : float
@@ -180,18 +179,11 @@ class RegistrationOptions:
         unrotated start's (an orientation prior; docs/method.md has the measurements).
     init_keep_rest : bool
         With an initialization, run Algorithm 1 from the rest pose (the paper's start) as
-        well as from the aligned start (and the ICP start, ``icp_start``), and keep the
+        well as from the aligned start, and keep the
         result that stretches the source's edges least
         (:func:`morphmodes_vol.metrics.edge_strain`) among those whose objective (Eq. 3 on
         the full grid plus the isometry prior and landmarks when on) is within
         ``select_energy_factor`` of the lowest; ``False`` runs from the aligned start only.
-    icp_start : bool
-        With an initialization and a target mesh, also run Algorithm 1 from a rigid ICP
-        alignment of the source's vertices onto the target's surface
-        (:func:`morphmodes_vol.initialize.icp_align`; a similarity with
-        ``initialization="similarity"``), and choose among all the runs as
-        ``init_keep_rest`` says. The volume fit of the initialization and the surface fit of
-        ICP land in different basins on large pose changes (docs/method.md).
     coarse_starts : bool
         Run the starts on every other node of the quadrature grid (spacing ``2h``, an eighth
         of the points), and keep the run that the rule among starts chooses there; the grid
@@ -403,7 +395,6 @@ class RegistrationOptions:
     init_candidates: int = 6
     init_switch: float = 0.6
     init_keep_rest: bool = True
-    icp_start: bool = True
     select_energy_factor: float = 10.0
     start_check_modes: int = 4
     start_merge_distance: float = 0.005
@@ -446,28 +437,24 @@ class RegistrationOptions:
     @classmethod
     def fast(cls) -> "RegistrationOptions":
         """The fast setting (issue 6): the defaults on a grid of 48 instead of 64, on the band
-        quadrature (``quadrature="band"``), without the warped pass's
-        starts from the initialization's other orientations (``warped_candidates=False``,
-        which changed no result at grid 48) and without the start from rigid ICP
-        (``icp_start=False``, which changed one). On the accuracy study's 30 pairs: mean
-        ground-truth error 0.0257 (4.1x below RICP+NRICP), at about 40% of the defaults'
-        time (docs/method.md, "The fast setting"). ``fast().replace(grid=g)`` for a grid
-        study."""
-        return cls(grid=48, quadrature="band", warped_candidates=False, icp_start=False)
+        quadrature (``quadrature="band"``), without the warped pass's starts from the
+        initialization's other orientations (``warped_candidates=False``).
+        ``fast().replace(grid=g)`` for a grid study (docs/method.md, "The fast setting")."""
+        return cls(grid=48, quadrature="band", warped_candidates=False)
 
     @classmethod
     def fastest(cls) -> "RegistrationOptions":
         """The fastest setting (issue 6): the warped rest field alone from the rest pose and the
         SDF alignment (``field_only``: no run of Algorithm 1 on Eq. 3 from them), its result of
         lowest field energy refined on Eq. (3), on the defaults' grid of 64; no start from
-        rigid ICP or from the initialization's other orientations, no hop
+        the initialization's other orientations, no hop
         (``warped_hops=0``, ``warped_descriptors=False``); and, cheaper where the accuracy
         study's 30 errors stayed the same (one better), a band of 1.5 cells each side for
         the refinement on the band quadrature (``quadrature="band"``, ``band_cells=1.5``), the field's starts compared after 6 modes
         (``warped_prune_modes=6``) and 4 orientations refined by the initialization
         (``init_candidates=4``). docs/method.md, "The fastest setting", has its accuracy and
         time against the defaults and NRICP."""
-        return cls(field_only=True, icp_start=False, warped_candidates=False, warped_hops=0,
+        return cls(field_only=True, warped_candidates=False, warped_hops=0,
                    warped_descriptors=False, quadrature="band", band_cells=1.5, warped_prune_modes=6,
                    init_candidates=4)
 
@@ -554,7 +541,6 @@ class RegistrationOptions:
              "an integer in [1, 29]")
         need(_is_real(self.init_switch) and 0 <= self.init_switch <= 1, "init_switch", "a float in [0, 1]")
         need(isinstance(self.init_keep_rest, bool), "init_keep_rest", "True or False")
-        need(isinstance(self.icp_start, bool), "icp_start", "True or False")
         need(isinstance(self.coarse_starts, bool), "coarse_starts", "True or False")
         need(isinstance(self.overlap_field, bool), "overlap_field", "True or False")
         need(isinstance(self.warped_pass, bool), "warped_pass", "True or False")

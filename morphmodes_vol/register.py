@@ -24,7 +24,7 @@ from .descriptors import heat_kernel_signature, surface_descriptor_grid
 from .eigenbasis import LBSBasis, mesh_skinning_weights, to_paper_z
 from .energy import SDFEnergy
 from .errors import MeshValidationError, OptionError
-from .initialize import IcpAlignment, InitialAlignment, align, icp_align
+from .initialize import InitialAlignment, align
 from .isometry import IsometryEnergy
 from .landmarks import LandmarkEnergy, Landmarks, as_landmarks, landmark_rms
 from .mesh import MeshLike, Normalization, as_mesh, bbox_diagonal, joint_normalization
@@ -99,7 +99,7 @@ class RegistrationResult:
         (:func:`morphmodes_vol.metrics.shape_metrics`), ground-truth errors when a ground
         truth was given, landmark distances when landmarks were (``initial_landmark_rms``,
         ``landmark_rms`` in target units, ``landmark_rms_fraction`` of its diagonal).
-        ``start``: the start whose run was kept (``rest``, ``aligned`` or ``icp``; with
+        ``start``: the start whose run was kept (``rest`` or ``aligned``; with
         ``coarse_starts``, the coarse pass's runs are ``rest (coarse)`` and so on; with ``two_way``, ``reverse`` or ``reverse, both
         sides`` when a run from the reverse registration's correspondences was kept);
         ``starts``: one entry per run (``start``; the objective ``energy`` its run ended or
@@ -110,9 +110,8 @@ class RegistrationResult:
         ``energy_after_modes`` modes (both ``None`` and ``energy`` NaN when it never was);
         its ``edge_strain`` when it ended or stopped; ``evaluations``; and
         ``stopped_after_modes`` / ``stop_reason``, ``merged``, ``outstretched``,
-        ``not chosen``, when it was stopped early; ``None`` otherwise); ``init_*`` and
-        ``icp_*``: the two alignments (:meth:`InitialAlignment.summary`,
-        :meth:`IcpAlignment.summary`). Cost: ``evaluations_all_starts`` (every run's
+        ``not chosen``, when it was stopped early; ``None`` otherwise); ``init_*``: the
+        initial alignment (:meth:`InitialAlignment.summary`). Cost: ``evaluations_all_starts`` (every run's
         source-SDF evaluations; ``coarse_evaluations_all_starts`` and
         ``partial_evaluations_all_starts`` of them on the coarse pass's grid and after band
         refreshes), ``comparison_evaluations`` (the objectives that compared runs, on every
@@ -419,15 +418,6 @@ class Registration:
         return align(self.X0, self.source_sdf_faces, Q, self.sample_target(Q), coarse.cell_volume,
                      kind=o.initialization, keep=o.init_candidates, switch=o.init_switch,
                      sign=o.source_sign)
-
-    def icp_alignment(self) -> IcpAlignment:
-        """Rigid ICP of the source's vertices onto the target's surface from the rest pose
-        (:func:`morphmodes_vol.initialize.icp_align`; a similarity with
-        ``initialization="similarity"``), normalized frame; needs a target mesh."""
-        if self.Y is None:
-            raise ValueError("ICP needs a target mesh; the target was given as an SDF")
-        return icp_align(self.X0, self.Y, self.target_faces,
-                         scale=self.options.initialization == "similarity")
 
     def _start_coefficients(self, matrix: np.ndarray) -> np.ndarray:
         """Mode 0's block ``(1, 3, 4)`` that maps the rest pose by ``x -> matrix @ [x, 1]``:
@@ -777,7 +767,7 @@ class Registration:
 
     def _starts(self) -> tuple[list, list, dict, float]:
         """The starts of the runs (``(label, T0 or None, options)``: the rest pose, the SDF
-        alignment, rigid ICP, as the options ask), the initialization's other orientations
+        alignment, as the options ask), the initialization's other orientations
         for the warped pass (``(label, T0)``, ``warped_candidates``), the initialization's
         report and the seconds spent."""
         t = time.perf_counter()
@@ -793,13 +783,6 @@ class Registration:
             if self.options.warped_pass and self.options.warped_candidates:
                 candidates = [(f"candidate {i}", self._start_coefficients(M))
                               for i, M in alignment.refined_matrices.items() if i != alignment.chosen]
-            if self.options.icp_start:
-                if self.Y is None:
-                    log.info("no target mesh (an SDF target): no ICP start")
-                else:
-                    icp = self.icp_alignment()
-                    init_summary.update(icp.summary())
-                    aligned.append(("icp", self._start_coefficients(icp.matrix), aligned_options))
             starts = starts + aligned if self.options.init_keep_rest else aligned
         return starts, candidates, init_summary, time.perf_counter() - t
 

@@ -14,7 +14,7 @@ onto ``--sweep-targets`` (default lion-01 and lion-05). Ground-truth error:
 
 Methods:
 - ``ours``: :class:`morphmodes_vol.RegistrationOptions` defaults, with ``--set`` overrides;
-- ``fast``: :meth:`RegistrationOptions.fast` (``--fast``: grid 48, the band quadrature, no ICP start,
+- ``fast``: :meth:`RegistrationOptions.fast` (``--fast``: grid 48, the band quadrature,
   no warped-pass starts from the other orientations), with the same overrides;
 - ``fastest``: :meth:`RegistrationOptions.fastest` (``--fastest``: the warped rest field alone from the
   rest pose and the SDF alignment, refined on Eq. 3; no runs of Algorithm 1), with the same

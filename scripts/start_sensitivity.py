@@ -59,7 +59,7 @@ def main() -> int:
     args = ap.parse_args()
     source = mesh_path(f"{args.pose.split('-')[0]}-reference")  # exits without the shared data
     target = mesh_path(args.pose)
-    options = mm.RegistrationOptions(**{"init_keep_rest": False, "icp_start": False, **parse_overrides(args.set)})
+    options = mm.RegistrationOptions(**{"init_keep_rest": False, **parse_overrides(args.set)})
     if options.initialization == "none":
         print("--set initialization=none has no start to turn", file=sys.stderr)
         return 2

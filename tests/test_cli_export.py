@@ -118,12 +118,11 @@ def test_options_from_the_flags_and_the_presets():
     assert default.coarse_starts and not paper.coarse_starts
     assert not options("--no-coarse-starts").coarse_starts
     assert options("--optimizer", "paper", "--coarse-starts").coarse_starts
-    # --fast is RegistrationOptions.fast() (a preset of four options), which the other flags override
+    # --fast is RegistrationOptions.fast() (a preset of three options), which the other flags override
     quick = options("--fast")
     assert quick == mm_options.fast().replace(modes=quick.modes)
     assert (quick.grid, default.grid) == (mm_options.fast().grid, mm_options().grid)
     assert options("--fast", "--quadrature", "full").quadrature == "full" and options("--fast", "--grid", "64").grid == 64
-    assert options("--fast", "--icp-start").icp_start and not options("--no-icp-start").icp_start
     with pytest.raises(OptionError, match="--fast and --optimizer paper"):
         options("--fast", "--optimizer", "paper")
     mixed = options("--optimizer", "lm", "--quadrature", "band")

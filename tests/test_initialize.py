@@ -218,7 +218,7 @@ def test_cli_init_flag_reaches_the_options_and_the_report(tmp_path, capsys):
     assert report["options"]["initialization"] == "rigid"
     assert report["metrics"]["init_rotation_deg"] > 20 and "initialize" in report["timings"]
     out = capsys.readouterr().out
-    assert "initial alignment: rotation" in out and "ICP alignment: rotation" in out
+    assert "initial alignment: rotation" in out
     assert f"kept: {report['metrics']['start']}" in out
 
 
@@ -240,16 +240,13 @@ def test_two_starts_are_run_and_reported():
                                   initialization="rigid", start_check_modes=99, warped_pass=False)
     r = mm.register((X, F), (Y, F), opts, ground_truth=Y)
     starts = r.metrics["starts"]
-    assert [s["start"] for s in starts] == ["rest", "aligned", "icp"]
-    assert r.metrics["start"] in ("rest", "aligned", "icp")
+    assert [s["start"] for s in starts] == ["rest", "aligned"]
+    assert r.metrics["start"] in ("rest", "aligned")
     assert r.evaluations == sum(s["evaluations"] for s in starts) > r.history.evaluations
     chosen = next(s for s in starts if s["start"] == r.metrics["start"])
     assert chosen["edge_strain"] == r.metrics["edge_strain"]
-    assert r.metrics["icp_iterations"] >= 1 and "init_rotation_deg" in r.metrics
-    two = mm.register((X, F), (Y, F), opts.replace(icp_start=False))
-    assert [s["start"] for s in two.metrics["starts"]] == ["rest", "aligned"]
-    assert "icp_iterations" not in two.metrics
-    one = mm.register((X, F), (Y, F), opts.replace(init_keep_rest=False, icp_start=False))
+    assert "init_rotation_deg" in r.metrics
+    one = mm.register((X, F), (Y, F), opts.replace(init_keep_rest=False))
     assert [s["start"] for s in one.metrics["starts"]] == ["aligned"]
     none = mm.register((X, F), (Y, F), opts.replace(initialization="none"))
     assert [s["start"] for s in none.metrics["starts"]] == ["rest"]
@@ -382,7 +379,7 @@ def test_the_choice_between_starts_made_early_is_the_final_choice_at_that_stage(
     modes keeps, and only it goes on to ``modes``."""
     X, F = asymmetric_blob()
     Y = bend(X, 0.4, axis=2, towards=0) + [0.05, 0.0, 0.0]
-    opts = mm.RegistrationOptions(grid=16, modes=5, start_check_modes=99, icp_start=False, warped_pass=False)
+    opts = mm.RegistrationOptions(grid=16, modes=5, start_check_modes=99, warped_pass=False)
     short = mm.register((X, F), (Y, F), opts.replace(modes=3))
     r = mm.register((X, F), (Y, F), opts.replace(start_choice_modes=3))
     starts = {s["start"]: s for s in r.metrics["starts"]}
@@ -407,7 +404,7 @@ def test_two_starts_in_lockstep_stop_one_and_keep_the_other_run_unchanged():
     X, F = asymmetric_blob()
     Y = bend(X, 0.4, axis=2, towards=0) + [0.05, 0.0, 0.0]
     opts = mm.RegistrationOptions(grid=16, modes=5, start_check_modes=2, start_merge_distance=0.02,
-                                  icp_start=False, warped_pass=False)
+                                  warped_pass=False)
     events = []
     r = mm.register((X, F), (Y, F), opts, ground_truth=Y, progress=events.append)
     full = mm.register((X, F), (Y, F), opts.replace(start_check_modes=99), ground_truth=Y)
@@ -454,8 +451,8 @@ def test_icp_align_is_trimeshs_icp_and_recovers_a_rigid_motion_and_a_scale():
         icp_align(X[:2], Y, F)
 
 
-def test_icp_start_needs_a_target_mesh():
-    """With the target given as an SDF there is no surface for ICP: two starts, logged."""
+def test_an_sdf_target_has_the_two_starts():
+    """With the target given as an SDF: the rest pose and the SDF alignment."""
     from morphmodes_vol.sdf import DenseTargetSDF, Grid
 
     X, F = asymmetric_blob()
@@ -465,31 +462,6 @@ def test_icp_start_needs_a_target_mesh():
     reg = mm.Registration((X, F), sdf, mm.RegistrationOptions(grid=16, modes=2, warped_pass=False))
     r = reg.run()
     assert [s["start"] for s in r.metrics["starts"]] == ["rest", "aligned"]
-    with pytest.raises(ValueError, match="target mesh"):
-        reg.icp_alignment()
-
-
-def test_three_starts_in_lockstep_merge_into_one():
-    """A translated bend: all three starts reach the same answer, two stop as merged and the
-    run that goes on is the same as without early stops."""
-    X, F = asymmetric_blob()
-    Y = bend(X, 0.4, axis=2, towards=0) + [0.05, 0.0, 0.0]
-    opts = mm.RegistrationOptions(grid=16, modes=5, start_check_modes=2, start_merge_distance=0.05,
-                                  warped_pass=False)
-    events = []
-    r = mm.register((X, F), (Y, F), opts, progress=events.append)
-    full = mm.register((X, F), (Y, F), opts.replace(start_check_modes=99))
-    starts = {s["start"]: s for s in r.metrics["starts"]}
-    assert set(starts) == {"rest", "aligned", "icp"} == {e.start for e in events}
-    stopped = [s for s in starts.values() if s["stopped_after_modes"] is not None]
-    assert len(stopped) == 2 and all(s["stop_reason"] == "merged" for s in stopped)
-    kept = r.metrics["start"]
-    assert starts[kept]["stopped_after_modes"] is None
-    full_starts = {s["start"]: s for s in full.metrics["starts"]}
-    assert starts[kept]["evaluations"] == full_starts[kept]["evaluations"]
-    assert r.evaluations < full.evaluations
-    if full.metrics["start"] == kept:
-        np.testing.assert_array_equal(r.vertices, full.vertices)
 
 
 def test_coarse_energy_is_eq3_on_every_other_node():
@@ -539,15 +511,15 @@ def test_the_coarse_pass_compares_running_starts_on_its_own_grid(monkeypatch):
     kept = next(r for r in runs if r.stopped is None)
     assert kept.energy == pytest.approx(fine(kept.result.vertices), rel=1e-12)
 
-    # a registration: the three starts judged on the coarse grid after 2 modes, then the
+    # a registration: the two starts judged on the coarse grid after 2 modes, then the
     # coarse pass's kept run on the fine grid when it ends
     calls.clear()
     monkeypatch.setattr(reg, "_coarse_objective", coarse)
     starts = reg.run().metrics["starts"]
-    assert calls == ["coarse"] * 3 + ["fine"]
+    assert calls == ["coarse"] * 2 + ["fine"]
     # the report says which grid each start's energy is on, and after how many modes
     assert [(s["energy_grid"], s["energy_after_modes"]) for s in starts if s["stopped_after_modes"]] \
-        == [("coarse", 2)] * 2
+        == [("coarse", 2)]
     assert [(s["energy_grid"], s["energy_after_modes"]) for s in starts if not s["stopped_after_modes"]] \
         == [("fine", 3)]
 
@@ -562,7 +534,7 @@ def test_the_coarse_pass_result_is_kept_by_the_rule_among_starts():
     reg = mm.Registration((X, F), (Y, F), opts)
     out = reg.run()
     labels = [s["start"] for s in out.metrics["starts"]]
-    assert labels == ["rest (coarse)", "aligned (coarse)", "icp (coarse)"]
+    assert labels == ["rest (coarse)", "aligned (coarse)"]
     assert all(s["energy_grid"] == "fine" for s in out.metrics["starts"])
     from morphmodes_vol.register import _select_start, _StartRun
 
@@ -574,25 +546,25 @@ def test_the_coarse_pass_result_is_kept_by_the_rule_among_starts():
     # a grid too coarse to halve: one pass
     small = mm.register((X, F), (Y, F), opts.replace(grid=40, initialization="none"))
     assert [s["start"] for s in small.metrics["starts"]] == ["rest"]
-    for gone in ("fine_pass", "fine_merge"):
+    for gone in ("fine_pass", "fine_merge", "icp_start"):
         with pytest.raises(TypeError):
             mm.RegistrationOptions(**{gone: True})
 
 
 def test_the_fast_setting_is_the_defaults_on_the_band_without_the_other_orientations():
-    """``RegistrationOptions.fast()``: the defaults but ``grid``, ``quadrature``,
-    ``warped_candidates`` and ``icp_start``; a registration with it has the coarse runs from
-    the rest pose and the aligned start only, and its warped pass starts from those alone."""
+    """``RegistrationOptions.fast()``: the defaults but ``grid``, ``quadrature`` and
+    ``warped_candidates``; a registration with it has the coarse runs from the rest pose and
+    the aligned start, and its warped pass starts from those alone."""
     fast, default = mm.RegistrationOptions.fast(), mm.RegistrationOptions()
-    assert fast.grid < default.grid and not (fast.warped_candidates or fast.icp_start)
+    assert fast.grid < default.grid and not fast.warped_candidates
     assert (fast.quadrature, default.quadrature) == ("band", "full")
-    assert fast.replace(grid=default.grid, quadrature="full", warped_candidates=True, icp_start=True) == default
+    assert fast.replace(grid=default.grid, quadrature="full", warped_candidates=True) == default
     X, F = asymmetric_blob()
     Y = bend(X, 0.6, axis=2, towards=0) + [0.03, 0.0, 0.0]
     out = mm.register((X, F), (Y, F), fast.replace(grid=48, modes=3, warped_descriptors=False))
     runs = [s["start"] for s in out.metrics["starts"]]
     assert runs[:2] == ["rest (coarse)", "aligned (coarse)"]
-    assert all(not label.startswith(("rest", "aligned", "icp")) or label.endswith(" (coarse)") for label in runs)
+    assert all(not label.startswith(("rest", "aligned")) or label.endswith(" (coarse)") for label in runs)
     warped = out.metrics["warped_pass"]
     assert set(warped["field_energies"]) | set(warped["pruned"]) == {"rest", "aligned"}
     assert out.metrics["final_sdf_rms"] < 0.5 * out.metrics["initial_sdf_rms"]

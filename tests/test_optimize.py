@@ -35,7 +35,7 @@ def test_stall_schedule_decays_geometrically():
     [("grid", 2), ("grid", 64.0), ("modes", 0), ("preconditioner", "newton"), ("backtrack", 1.0),
      ("stall_end", 1.0), ("occupancy_samples", 2), ("seed", -1), ("padding", -0.1),
      ("start_check_modes", 0), ("start_merge_distance", -1.0), ("start_strain_ratio", 0.5),
-     ("start_strain_ratio", "2"), ("start_choice_modes", 0), ("start_choice_modes", 2.5), ("icp_start", 1)],
+     ("start_strain_ratio", "2"), ("start_choice_modes", 0), ("start_choice_modes", 2.5)],
 )
 def test_options_reject_invalid_values(field, value):
     with pytest.raises(OptionError, match=field):

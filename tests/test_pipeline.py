@@ -100,10 +100,10 @@ def test_options_preset_is_a_named_setting_the_other_keys_change(dataset):
     and the sweep change it; without it the defaults; ``"paper"`` and ``"fastest"`` too."""
     import morphmodes_vol as mm
 
-    body = GLOB + '[options]\npreset = "fast"\nmodes = 3\n[sweep]\nicp_start = [false, true]\n'
+    body = GLOB + '[options]\npreset = "fast"\nmodes = 3\n[sweep]\nwarped_candidates = [false, true]\n'
     p = load_pipeline(_toml(dataset, body))
     assert [s.options for s in p.pairs[:2]] == [mm.RegistrationOptions.fast().replace(modes=3),
-                                                mm.RegistrationOptions.fast().replace(modes=3, icp_start=True)]
+                                                mm.RegistrationOptions.fast().replace(modes=3, warped_candidates=True)]
     assert p.pairs[0].options.grid == mm.RegistrationOptions.fast().grid
     assert load_pipeline(_toml(dataset, GLOB)).pairs[0].options == mm.RegistrationOptions()
     paper = load_pipeline(_toml(dataset, GLOB + '[options]\npreset = "paper"\n')).pairs[0].options

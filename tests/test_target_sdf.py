@@ -244,7 +244,7 @@ def test_registration_onto_a_saved_target_sdf_matches_the_mesh_target(tmp_path):
     from morphmodes_vol import Registration
 
     source, target = _far_pair()
-    opts = RegistrationOptions(grid=20, modes=3, warped_pass=False, icp_start=False)
+    opts = RegistrationOptions(grid=20, modes=3, warped_pass=False)
     reg = Registration(source, target, opts)
     on_mesh = reg.run(ground_truth=target[0])
     on_file = register(source, reg.save_target_sdf(tmp_path / "t.npz"), opts, ground_truth=target[0])

@@ -134,7 +134,7 @@ def _check_kept(w, forward_label, ratio):
         assert w["kept_before_hops"] == best_own
     # a candidate refined means the best start was refined too
     if any(k.startswith("candidate") for k in w["refined_starts"]):
-        assert set(w["refined_starts"]) & {"rest", "aligned", "icp"}
+        assert set(w["refined_starts"]) & {"rest", "aligned"}
 
 
 def test_warped_pass_keeps_the_lower_objective_and_counts_its_work():
@@ -151,7 +151,7 @@ def test_warped_pass_keeps_the_lower_objective_and_counts_its_work():
     # the defaults: every start and candidate on the field, the lowest field energy refined
     assert options.warped_candidates and options.warped_choice == "field" and w["field_objectives"] == {}
     assert w["refined_starts"][0] == min(w["field_energies"], key=w["field_energies"].get)
-    assert {"rest", "aligned", "icp"} < set(w["field_energies"])
+    assert {"rest", "aligned"} < set(w["field_energies"])
     # the runs' part is the registration without the pass, judged on the full grid
     assert objectives[plain.metrics["start"]] == pytest.approx(
         reg._objective(reg.normalization.apply(plain.vertices)), rel=1e-12)
@@ -251,11 +251,10 @@ def test_warped_candidates_and_the_choice_by_field_energy():
     np.testing.assert_array_equal(alignment.refined_matrices[alignment.chosen], alignment.matrix)
     others = {f"candidate {i}" for i in alignment.refined_matrices if i != alignment.chosen}
     energies, objectives = w["field_energies"], w["field_objectives"]
-    assert set(energies) == {"rest", "aligned", "icp"} | (others - set(w["skipped_candidates"]))
+    assert set(energies) == {"rest", "aligned"} | (others - set(w["skipped_candidates"]))
     assert set(objectives) == set(energies) and len(energies) > 3
     # a skipped candidate maps the source within start_merge_distance of a start taken
-    taken = [np.zeros((1, 3, 4)), reg._start_coefficients(alignment.matrix),
-             reg._start_coefficients(reg.icp_alignment().matrix)]
+    taken = [np.zeros((1, 3, 4)), reg._start_coefficients(alignment.matrix)]
     taken += [reg._start_coefficients(alignment.refined_matrices[int(k.split()[1])])
               for k in energies if k.startswith("candidate")]
     for k in w["skipped_candidates"]:
@@ -465,7 +464,7 @@ def test_field_only_options_and_the_fastest_flag():
     assert mm.RegistrationOptions.preset("fastest") == fastest
     # the defaults without the runs, the ICP start, the other orientations and the hops, on
     # a narrower band quadrature, with earlier pruning and fewer refined orientations
-    assert fastest.replace(field_only=False, icp_start=True, warped_candidates=True, warped_hops=1,
+    assert fastest.replace(field_only=False, warped_candidates=True, warped_hops=1,
                            warped_descriptors=True, quadrature="full", band_cells=2.0,
                            warped_prune_modes=8, init_candidates=6) == mm.RegistrationOptions()
     for flags, want in ((["--fastest"], fastest), (["--fastest", "--grid", "32"], fastest.replace(grid=32)),
