@@ -279,7 +279,7 @@ class RegistrationOptions:
         The orientation prior of the warped pass (as ``init_switch`` is the
         initialization's): a refined result that came from a candidate (another
         orientation) is kept only when its objective is below this times that of every
-        result from the three starts (the runs' result and, refined too whenever a candidate
+        result from the starts (the runs' result and, refined too whenever a candidate
         ranks first, the best start's field result). Shapes with a symmetry tie across
         orientations: on a capsule turned end over end the candidate's objective was 0.05%
         lower and its ground-truth error 0.77 against 0.024; on cat-04 the kept candidate's

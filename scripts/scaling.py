@@ -1,5 +1,5 @@
 """Time and peak memory against vertex count and grid resolution, at the default settings
-(the initial alignments and three starts of ``RegistrationOptions()``).
+(the initial alignment and two starts of ``RegistrationOptions()``).
 
     python scripts/scaling.py [--pose 05] [--series vertices grid memory]
                               [--vertices 5k 20k 45k 80k] [--grids 32 48 64 96 128]
@@ -119,7 +119,7 @@ def main() -> int:
     ap.add_argument("--out", default=str(ROOT / "results" / "scaling"))
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                     help="RegistrationOptions overrides, e.g. initialization=none (one run from "
-                         "the rest pose instead of the default settings' three starts)")
+                         "the rest pose instead of the default settings' two starts)")
     args = ap.parse_args()
     overrides = parse_overrides(args.set)
     settings = ", ".join(args.set) if args.set else "default settings"
