@@ -531,8 +531,9 @@ def align(
         Points of a coarse quadrature grid covering both shapes.
     g : (k,) float
         Target signed distance at ``Q`` (negative inside).
-    weight : float
-        Quadrature weight of every point (the coarse grid's cell volume).
+    weight : float or (k,) float
+        Quadrature weight of every point (the coarse grid's cell volume, times an open
+        target's confidence).
     kind : {"rigid", "similarity"}
     keep : int
         Candidates refined after screening.
@@ -556,7 +557,8 @@ def align(
     Q = np.ascontiguousarray(Q, dtype=np.float64)
     g = np.ascontiguousarray(g, dtype=np.float64)
     weights = np.broadcast_to(np.asarray(weight, dtype=np.float64), g.shape)
-    spacing = float(np.cbrt(float(np.mean(weights)))) if np.mean(weights) > 0 else 0.0
+    # the cell volume: the largest weight (an open target's confidence lowers some)
+    spacing = float(np.cbrt(float(np.max(weights)))) if np.max(weights) > 0 else 0.0
     if not spacing > 0:
         raise ValueError(f"weight must be positive (the coarse grid's cell volume), got {weight}")
     inside_t = Q[g < 0]

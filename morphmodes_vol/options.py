@@ -58,7 +58,8 @@ class RegistrationOptions:
         gradient is a coarse sample of the nodes', which moves the optimum where the residual
         is small and makes the runs follow the band's refreshes (docs/decisions/0004).
     band_cells : float
-        Half width of the fine band, in grid spacings.
+        Half width of the fine band, in grid spacings; also the band around an open target
+        within which its field is trusted on both sides (:mod:`morphmodes_vol.sdf.confidence`).
     block_factor : int
         Nodes per block side away from the surfaces (``"band"`` quadrature). ``2`` (default):
         with ``4`` (the default until 2026-11-30) the demo pair ended 7-20x farther from its

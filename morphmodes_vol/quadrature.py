@@ -114,6 +114,9 @@ class BandEnergy:
         As in :class:`SDFEnergy`.
     points : (N, 3) float, optional
         ``grid.points()``, when the caller already holds it (not copied).
+    confidence : ((N,) float, callable) or None
+        The confidence of an open target's field (:mod:`morphmodes_vol.sdf.confidence`) at
+        the nodes, and its sampler for the block centres: it multiplies the weights.
 
     Counters: ``evaluations``; ``partial_evaluations``, those after a refresh that queried
     only the points new to the band (:meth:`evaluate`); ``points_queried``, the points sent
@@ -123,13 +126,17 @@ class BandEnergy:
 
     def __init__(self, F, grid: Grid, g_nodes, sample_target, band: float, factor: int,
                  margin: float, sign: SignMethod = "raycast", samples: int = 1,
-                 points: np.ndarray | None = None):
+                 points: np.ndarray | None = None, confidence=None):
         self.F = np.ascontiguousarray(F, dtype=np.int64)
         self.grid = grid
         self.points = grid.points() if points is None else points
         self.blocks = GridBlocks.of(grid, factor, self.points)
         self.g_nodes = np.asarray(g_nodes, dtype=np.float64)
         self.g_centers = np.asarray(sample_target(self.blocks.centers), dtype=np.float64)
+        n_nodes = self.points.shape[0]
+        self.c_nodes, self.c_centers = ((np.ones(n_nodes), np.ones(self.blocks.counts.size)) if confidence is None
+                                        else (np.asarray(confidence[0], dtype=np.float64),
+                                              np.asarray(confidence[1](self.blocks.centers), dtype=np.float64)))
         self.band, self.margin = float(band), float(margin)
         self.sign, self.samples = sign, samples
         reach = self.band + self.blocks.radius
@@ -181,7 +188,7 @@ class BandEnergy:
         h3 = self.grid.cell_volume
         Q = np.concatenate([self.points[fine], self.blocks.centers[far]])
         g = np.concatenate([self.g_nodes[fine], self.g_centers[far]])
-        w = np.concatenate([np.full(int(fine.sum()), h3), self.blocks.counts[far] * h3])
+        w = np.concatenate([h3 * self.c_nodes[fine], self.blocks.counts[far] * h3 * self.c_centers[far]])
         self._inner = SDFEnergy(self.F, Q, g, w, sign=self.sign, samples=self.samples)
         self._ids = np.concatenate([np.flatnonzero(fine), self.points.shape[0] + far])
         self._anchor = np.array(X, copy=True)

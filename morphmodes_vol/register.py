@@ -36,6 +36,7 @@ from .repair import sdf_faces
 from .optimize import AdaptiveRun, OptimizationHistory, ProgressEvent
 from .pointcloud import PointCloud, as_point_cloud, is_point_cloud_file, load_point_cloud, oriented_normals
 from .sdf import Grid, TargetSDF, build_target_sdf, closest_points, is_target_sdf_path, load_target_sdf
+from .sdf.confidence import target_confidence
 from .sdf.grid import trilinear_sample
 from .sdf.points import points_target_sdf, poisson_depth, poisson_surface
 from .sdf.source import is_closed, resolve_sign
@@ -292,6 +293,10 @@ class Registration:
             self.target_sdf = grid_target
         self._grid_target = target_sdf is None and grid_target is not None
         self.g = self.sample_target(self.Q)
+        # an open target's field is known near it and in front of it only (sdf/confidence.py)
+        self.confidence = None if self.Y is None else target_confidence(
+            self.Y, self.target_sdf_faces, self.target_grid, self.options.band_cells * self.quadrature.spacing)
+        self.c = None if self.confidence is None else self.confidence.sample(self.Q)
         self.timings["target_sdf"] = time.perf_counter() - t
         log.info("target SDF (%s, %.1f MB), %d quadrature points, %.2fs",
                  type(self.target_sdf).__name__, self.target_sdf.nbytes / 1e6, self.Q.shape[0],
@@ -302,7 +307,7 @@ class Registration:
         at 0): Eq. (3) on the quadrature ``options.quadrature`` selects, plus the isometry
         prior and the landmarks when on."""
         o = self.options
-        sdf = self._quadrature_energy(self.quadrature, self.g, self.Q)
+        sdf = self._quadrature_energy(self.quadrature, self.g, self.Q, c=self.c)
         if o.coarse_modes > 0:
             # a grid refining across stages: every other node (spacing 2h) for the first
             # coarse_modes stages
@@ -320,7 +325,7 @@ class Registration:
         grid's target values subsampled), on the quadrature ``kind`` (as
         :meth:`_quadrature_energy`)."""
         grid, idx = every_other_node(self.quadrature)
-        return self._quadrature_energy(grid, self.g[idx], self.Q[idx], kind)
+        return self._quadrature_energy(grid, self.g[idx], self.Q[idx], kind, None if self.c is None else self.c[idx])
 
     def _with_terms(self, sdf):
         """``sdf`` (Eq. 3 on some quadrature) plus the terms the options and inputs add: the
@@ -337,8 +342,9 @@ class Registration:
                               o.landmark_weight, volume)
 
     def _quadrature_energy(self, grid: Grid, g: np.ndarray, Q: np.ndarray,
-                           kind: str | None = None) -> SDFEnergy | BandEnergy:
-        """Eq. (3) on the nodes ``Q (N, 3)`` of ``grid`` (target values ``g (N,)``), on the
+                           kind: str | None = None, c: np.ndarray | None = None) -> SDFEnergy | BandEnergy:
+        """Eq. (3) on the nodes ``Q (N, 3)`` of ``grid`` (target values ``g (N,)``, the
+        confidence of an open target's field ``c (N,)`` multiplying the weights), on the
         quadrature ``kind`` (default ``options.quadrature``); band widths are in cells of
         ``grid``."""
         o = self.options
@@ -348,9 +354,10 @@ class Registration:
                 self.source_sdf_faces, grid, g, self.sample_target,
                 band=o.band_cells * h, factor=o.block_factor, margin=o.band_margin_cells * h,
                 sign=o.source_sign, samples=o.occupancy_samples, points=Q,
+                confidence=None if c is None else (c, self.confidence.sample),
             )
-        return SDFEnergy(self.source_sdf_faces, Q, g, grid.cell_volume, sign=o.source_sign,
-                         samples=o.occupancy_samples)
+        weight = grid.cell_volume if c is None else grid.cell_volume * c
+        return SDFEnergy(self.source_sdf_faces, Q, g, weight, sign=o.source_sign, samples=o.occupancy_samples)
 
     def sample_target(self, points: np.ndarray) -> np.ndarray:
         """Target SDF at ``points (k, 3)`` of the pair's normalized frame, ``(k,)``."""
@@ -415,7 +422,8 @@ class Registration:
         o = self.options
         coarse = Grid.covering(self.quadrature.origin, self.quadrature.upper, o.init_grid)
         Q = coarse.points()
-        return align(self.X0, self.source_sdf_faces, Q, self.sample_target(Q), coarse.cell_volume,
+        weight = coarse.cell_volume if self.confidence is None else coarse.cell_volume * self.confidence.sample(Q)
+        return align(self.X0, self.source_sdf_faces, Q, self.sample_target(Q), weight,
                      kind=o.initialization, keep=o.init_candidates, switch=o.init_switch,
                      sign=o.source_sign)
 
@@ -588,7 +596,7 @@ class Registration:
 
     def full_energy(self) -> SDFEnergy:
         """Eq. (3) on every node of the quadrature grid (the paper's quadrature)."""
-        return self._quadrature_energy(self.quadrature, self.g, self.Q, "full")
+        return self._quadrature_energy(self.quadrature, self.g, self.Q, "full", self.c)
 
     def run(
         self,
@@ -863,7 +871,8 @@ class Registration:
         field = WarpedRestField(self.basis, self.source_sdf_faces, self.sample_target, h,
                                 o.warped_band_cells * h,
                                 terms=self._with_terms(ZeroEnergy(self.X0.shape[0])),
-                                sign=o.source_sign, samples=o.occupancy_samples)
+                                sign=o.source_sign, samples=o.occupancy_samples,
+                                sample_weight=None if self.confidence is None else self.confidence.sample)
         field_starts = [(label, np.zeros((1, 3, 4)) if T0 is None else T0) for label, T0, _ in starts]
         skipped, placed = [], [self.basis.deform(T) for _, T in field_starts]
         for label, T0 in candidates:  # other orientations; one that repeats a start is skipped

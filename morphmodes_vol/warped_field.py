@@ -138,6 +138,10 @@ class WarpedRestField:
         :func:`~morphmodes_vol.descriptors.surface_descriptor_grid`).
     descriptor_weight : float
         ``mu``, the weight of the channels' mean squared residual against the SDF's.
+    sample_weight : callable or None
+        Points ``(N, 3)`` -> a weight ``(N,)`` of each node's terms at its place ``phi_T(p)``:
+        an open target's confidence (:mod:`morphmodes_vol.sdf.confidence`), held fixed in
+        the Gauss-Newton model.
 
     Examples
     --------
@@ -153,7 +157,7 @@ class WarpedRestField:
 
     def __init__(self, basis: LBSBasis, faces: np.ndarray, sample_target, spacing: float,
                  band: float, terms=None, sign: str = "raycast", samples: int = 1,
-                 descriptors=None, descriptor_weight: float = 0.0):
+                 descriptors=None, descriptor_weight: float = 0.0, sample_weight=None):
         if not (spacing > 0 and band > 0):
             raise ValueError(f"spacing and band must be positive, got {spacing} and {band}")
         t = time.perf_counter()
@@ -179,6 +183,7 @@ class WarpedRestField:
         self.point_basis = LBSBasis(self.points, W)
         self.basis = basis
         self.sample_target = sample_target
+        self.sample_weight = sample_weight
         self._step = 0.25 * spacing  # central differences of g inside a trilinear cell
         self.terms = terms
         self.evaluations = 0
@@ -239,11 +244,13 @@ class WarpedRestField:
         Y = self.point_basis.deform(T)
         g, G = self._sampled(self.sample_target, Y, m is not None)
         r = self.f0 - g
-        E = self.cell_volume * float(r @ r)
+        # the nodes' weights: the cell volume, times an open target's confidence there
+        v = self.cell_volume if self.sample_weight is None else self.cell_volume * self.sample_weight(Y)
+        E = float(np.sum(v * r * r))
         if self.d0 is not None:
             d, Gd = self._sampled(self.sample_descriptors, Y, m is not None)
             rd = self.d0 - d
-            E += self.cell_volume * self._channel_weight * float(np.sum(rd * rd))
+            E += self._channel_weight * float(np.sum(v * np.sum(rd * rd, axis=1)))
         X = self.basis.deform(T) if self.terms is not None else None
         ev = self.terms.evaluate(X) if self.terms is not None else None
         if ev is not None:
@@ -251,15 +258,15 @@ class WarpedRestField:
         if m is None:
             return E
         C = self.point_basis.skinning_matrix(m)
-        v = self.cell_volume
+        v = np.broadcast_to(v, r.shape)  # per node, for the products below
         if self.d0 is None:
             GG = {(a, b): v * G[:, a] * G[:, b] for a in range(3) for b in range(a, 3)}
-            RG = v * r[:, None] * G
+            RG = v[:, None] * r[:, None] * G
         else:  # the channels' rows, weighted, summed per node before the products with C
             mu = self._channel_weight
             GG = {(a, b): v * (G[:, a] * G[:, b] + mu * np.einsum("pj,pj->p", Gd[:, :, a], Gd[:, :, b]))
                   for a in range(3) for b in range(a, 3)}
-            RG = v * (r[:, None] * G + mu * np.einsum("pj,pja->pa", rd, Gd))
+            RG = v[:, None] * (r[:, None] * G + mu * np.einsum("pj,pja->pa", rd, Gd))
         blocks = {ab: C.T @ (C * w[:, None]) for ab, w in GG.items()}
         A = _assemble(blocks, m)
         # J^T W r with J = -G (x) C: (4m, 3) in (mode, column) x coordinate, to the T layout

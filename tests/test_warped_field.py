@@ -66,6 +66,29 @@ def _field_gradient_error(sample_target):
     return np.max(np.abs(2 * normal.g - fd)) / np.max(np.abs(2 * normal.g))
 
 
+def test_node_weights_by_hand_and_the_model_exact_for_a_linear_target():
+    """``sample_weight`` (an open target's confidence at the warped nodes) multiplies each
+    node's term: by hand for a translation, with the weight ``1 + p_x`` at the node's place
+    ``p``; and with a constant weight the Gauss-Newton model stays exact for a linear ``g``."""
+    a = np.array([0.3, -0.5, 0.8])
+    base, V, F, W = _capsule_field(lambda q: q @ a + 0.1, modes=4)
+    weighted = WarpedRestField(LBSBasis(V, W), F, lambda q: q @ a + 0.1, spacing=0.08, band=0.16,
+                               sample_weight=lambda Y: 1.0 + Y[:, 0])
+    t = np.array([0.1, -0.2, 0.05])
+    T = np.zeros((4, 3, 4))
+    T[0, :, 3] = t / W[0, 0]
+    Y = weighted.points + t
+    r = weighted.f0 - (Y @ a + 0.1)
+    assert weighted.evaluate(T) == pytest.approx(weighted.cell_volume * np.sum((1.0 + Y[:, 0]) * r * r), rel=1e-12)
+    half = WarpedRestField(LBSBasis(V, W), F, lambda q: q @ a + 0.1, spacing=0.08, band=0.16,
+                           sample_weight=lambda Y: np.full(len(Y), 0.5))
+    T = np.random.default_rng(1).normal(scale=0.05, size=(4, 3, 4))
+    E, normal = half.evaluate(T, 4)
+    assert E == pytest.approx(0.5 * base.evaluate(T), rel=1e-12)
+    d = np.random.default_rng(2).normal(scale=0.05, size=48)
+    assert half.evaluate(T + d.reshape(4, 3, 4)) == pytest.approx(E + 2 * normal.g @ d + d @ normal.A @ d, rel=1e-6)
+
+
 def test_gradient_matches_finite_differences_with_the_isometry_prior():
     """Identity: ``2 g`` of the normal equations is the gradient of ``E_w`` plus the prior.
 
