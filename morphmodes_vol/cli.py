@@ -12,7 +12,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 
 from .errors import MorphModesError, OptionError
 from .export import MESH_FORMATS, check_output_path, output_names, write_outputs
