@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _data import ROOT, data_dir, parse_overrides, write_csv  # noqa: E402
+from _data import ROOT, SETS, data_dir, mesh_file, parse_overrides, plan, write_csv  # noqa: E402
 from _exp import load_rows  # noqa: E402
 
 import morphmodes_vol as mm  # noqa: E402
@@ -48,31 +48,10 @@ from morphmodes_vol.mesh import load_mesh  # noqa: E402
 from morphmodes_vol.metrics import ground_truth_error  # noqa: E402
 from morphmodes_vol.variants import VARIANTS, jittered, target_variant  # noqa: E402
 
-SETS = {
-    "tuning": [("lion", range(1, 10)), ("cat", range(1, 10))],
-    "validation": [("dance", range(1, 7)), ("jump", range(1, 6)), ("chicken", range(1, 7)), ("face", range(1, 6))],
-}
 QUICK = {"tuning": ["lion-01", "lion-05", "cat-03", "cat-04"],
          "validation": ["dance-04", "jump-03", "chicken-04", "face-03"]}
 JITTER = 1e-7
 """The copies' jitter, relative to the source's bounding-box diagonal."""
-
-
-def plan(sets: list[str], quick: bool, only: list[str]) -> list[dict]:
-    """The pairs: set, name (the target pose), source and target mesh names."""
-    out = []
-    for s in sets:
-        for body, frames in SETS[s]:
-            for i in frames:
-                name = f"{body}-{i:02d}"
-                if (quick and name not in QUICK[s]) or (only and name not in only):
-                    continue
-                out.append({"set": s, "pair": name, "source": f"{body}-reference", "target": name})
-    return out
-
-
-def mesh_file(name: str) -> Path:
-    return data_dir() / f"{name.rsplit('-', 1)[0]}-poses" / f"{name}.obj"
 
 
 def decisions(result) -> str:
@@ -262,7 +241,7 @@ def main() -> int:
     out = Path(args.out) if args.out else ROOT / "results" / ("robustness_quick" if args.quick else "robustness")
     out.mkdir(parents=True, exist_ok=True)
     csv_path = out / "robustness_runs.csv"
-    pairs = plan(args.sets, args.quick, args.pairs)
+    pairs = plan(args.sets, QUICK if args.quick else None, args.pairs)
     rows = load_rows(out, "robustness_runs") if csv_path.is_file() else []
     options = mm.RegistrationOptions().replace(**parse_overrides(args.set))
     config = {"ours": json.dumps(options.to_dict(), sort_keys=True), "ricp+nricp": "trimesh nricp_amberg defaults"}

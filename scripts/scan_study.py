@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _data import ROOT, data_dir, parse_overrides, write_csv  # noqa: E402
+from _data import ROOT, SETS, data_dir, mesh_file, parse_overrides, plan, write_csv  # noqa: E402
 from _exp import load_rows  # noqa: E402
 
 import morphmodes_vol as mm  # noqa: E402
@@ -44,29 +44,9 @@ from morphmodes_vol.pointcloud import PointCloud  # noqa: E402
 from morphmodes_vol.scanner import view_directions, virtual_scan  # noqa: E402
 from morphmodes_vol.variants import half_view_direction, sampled_points  # noqa: E402
 
-SETS = {
-    "tuning": [("lion", range(1, 10)), ("cat", range(1, 10))],
-    "validation": [("dance", range(1, 7)), ("jump", range(1, 6)), ("chicken", range(1, 7)), ("face", range(1, 6))],
-}
 QUICK = {"tuning": ["lion-01", "cat-03"], "validation": ["dance-04", "jump-03"]}
 KINDS = ("mesh", "cloud", "view1-points", "view1-mesh", "view2-points", "view2-mesh")
 CLOUD_POINTS, NOISE = 40_000, 1e-3
-
-
-def plan(sets, quick, only):
-    out = []
-    for s in sets:
-        for body, frames in SETS[s]:
-            for i in frames:
-                name = f"{body}-{i:02d}"
-                if (quick and name not in QUICK[s]) or (only and name not in only):
-                    continue
-                out.append({"set": s, "pair": name, "source": f"{body}-reference", "target": name})
-    return out
-
-
-def mesh_file(name: str) -> Path:
-    return data_dir() / f"{name.rsplit('-', 1)[0]}-poses" / f"{name}.obj"
 
 
 def scan_target(V, F, kind: str, seed: int):
@@ -208,7 +188,7 @@ def main() -> int:
         ap.error("the shared data is needed (../shared/data or MORPHMODES_DATA)")
     out = Path(args.out) if args.out else ROOT / "results" / ("scans_quick" if args.quick else "scans")
     out.mkdir(parents=True, exist_ok=True)
-    pairs = plan(args.sets, args.quick, args.pairs)
+    pairs = plan(args.sets, QUICK if args.quick else None, args.pairs)
     rows = load_rows(out, "scan_runs") if (out / "scan_runs.csv").is_file() else []
     options = mm.RegistrationOptions().replace(**parse_overrides(args.set))
     config = {"ours": json.dumps(options.to_dict(), sort_keys=True), "ricp+nricp": "trimesh nricp_amberg defaults"}
