@@ -15,9 +15,8 @@ from pathlib import Path
 
 from .errors import MorphModesError, OptionError
 from .export import MESH_FORMATS, check_output_path, output_names, write_outputs
-from .options import (INITIALIZATIONS, OPTIMIZERS, PRECONDITIONERS, QUADRATURES, SIGN_METHODS, WARPED_CHOICES,
-                      RegistrationOptions)
-from .sdf.target import TARGET_BACKENDS, target_sdf_backend
+from .options import PRESETS, SIGN_METHODS, RegistrationOptions, parse_setting, preset_description, toml_loads
+from .sdf.target import target_sdf_backend
 
 __all__ = ["main"]
 
@@ -60,164 +59,60 @@ class ProgressPrinter:
             self.stream.flush()
 
 
-#: command-line flags whose destination is the :class:`RegistrationOptions` field of that name
-_SAME_NAMED_OPTIONS = ("target_grid", "max_iterations", "preconditioner", "quadrature", "target_backend",
-                       "target_sign", "landmark_weight", "isometry_weight", "coarse_starts",
-                       "warped_pass", "warped_candidates", "warped_choice",
-                       "warped_refine", "warped_prune_modes", "warped_prune_ratio", "warped_hops",
-                       "warped_hop_iterations", "warped_hop_ratio", "warped_descriptors",
-                       "warped_descriptor_weight", "field_only")
+def _read_config(path) -> dict:
+    """The settings of a ``--config`` TOML file: the keys of :class:`RegistrationOptions` and
+    ``preset``, at its top level or in an ``[options]`` table (a pipeline definition's)."""
+    try:
+        doc = toml_loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise OptionError(f"{path}: no such config file") from None
+    except Exception as exc:  # a TOML syntax error
+        raise OptionError(f"{path}: not valid TOML ({exc})") from None
+    table = doc.get("options", doc)
+    if not isinstance(table, dict):
+        raise OptionError(f"{path}: [options] must be a table")
+    return {k: v for k, v in table.items() if k != "options"}
 
 
-def _options_from_args(args) -> RegistrationOptions:
-    fast = getattr(args, "fast", False)
-    # the command's grid, or the fast setting's when coarser (the demo's is already)
-    grid = args.grid if args.grid is not None else (
-        min(args.default_grid, RegistrationOptions.fast().grid) if fast else args.default_grid)
-    changes = {"grid": grid, "modes": args.modes, "seed": args.seed}
-    if args.optimizer is not None:
-        changes["optimizer"] = args.optimizer
-        if args.optimizer == "paper" and args.init is None:  # the paper starts at the rest pose
-            changes["initialization"] = "none"
-        if args.optimizer == "paper" and getattr(args, "isometry_weight", None) is None:  # and has Eq. (3) alone
-            changes["isometry_weight"] = 0.0
-        if args.optimizer == "paper" and getattr(args, "coarse_starts", None) is None:  # and one pass
-            changes["coarse_starts"] = False
-        if args.optimizer == "paper" and getattr(args, "warped_pass", None) is None:  # and no warped field
-            changes["warped_pass"] = False
-    # flags named as their option, given (not None) on the commands that have them: they
-    # override the optimizer's choices above
-    for name in _SAME_NAMED_OPTIONS:
-        value = getattr(args, name, None)
+def options_from_args(args) -> RegistrationOptions:
+    """The options of ``register`` and ``demo``: ``--preset`` (else the config's preset, else
+    the defaults), changed by ``--config``, then ``--grid`` and ``--modes``, then each ``--set``."""
+    table = _read_config(args.config) if args.config else {}
+    if args.preset is not None:
+        table["preset"] = args.preset
+    for key, default in (("grid", args.default_grid), ("modes", args.default_modes)):
+        value = getattr(args, key)
         if value is not None:
-            changes[name] = value
-    if args.memory_limit is not None:
-        changes["memory_limit_gb"] = None if args.memory_limit <= 0 else args.memory_limit
-    if args.init is not None:
-        changes["initialization"] = args.init
-    if getattr(args, "two_way", False):
-        changes["two_way"] = True
-    fastest = getattr(args, "fastest", False)
-    if fast and fastest:
-        raise OptionError("--fast and --fastest are two different settings: give one")
-    if (fast or fastest) and args.optimizer == "paper":
-        raise OptionError(f"--{'fast' if fast else 'fastest'} and --optimizer paper are two different "
-                          "settings: give one")
-    if fast:
-        return RegistrationOptions.fast().replace(**changes)  # the flags above override it
-    if fastest:
-        return RegistrationOptions.fastest().replace(**changes)
-    return RegistrationOptions().replace(**changes)
+            table[key] = value
+        elif default is not None and key not in table:  # the command's own (the demo's) default
+            table[key] = default
+    table.update(parse_setting(item) for item in args.settings)
+    if table.get("memory_limit_gb") == 0:  # 0: no limit (TOML has no None)
+        table["memory_limit_gb"] = None
+    return RegistrationOptions.from_table(table)
 
 
-def _add_common(p: argparse.ArgumentParser, default_grid: int, default_modes: int) -> None:
+def _add_common(p: argparse.ArgumentParser, default_grid: int | None, default_modes: int | None) -> None:
     d = RegistrationOptions()
-    fast = RegistrationOptions.fast()
+    p.add_argument("--preset", choices=list(PRESETS), default=None,
+                   help="a named setting: " + "; ".join(
+                       f"'{name}' {preset_description(name)}" for name in PRESETS) + " (default 'default')")
+    p.add_argument("--config", metavar="FILE", default=None,
+                   help="TOML file of options: keys of RegistrationOptions (and 'preset') at the top "
+                        "level or in an [options] table, as in a pipeline definition")
+    p.add_argument("--set", action="append", default=[], dest="settings", metavar="KEY=VALUE",
+                   help="change one option of RegistrationOptions, after --preset and --config "
+                        "(repeatable): e.g. --set quadrature=band --set warped_hops=0 --set "
+                        "memory_limit_gb=0 (no memory limit); `python -c \"import morphmodes_vol; "
+                        "help(morphmodes_vol.RegistrationOptions)\"` lists them")
     p.add_argument("--grid", type=int, default=None,
-                   help=f"quadrature points along the longest side of the box (default {default_grid}, "
-                        f"{min(default_grid, fast.grid)} with --fast)")
-    p.set_defaults(default_grid=default_grid)
-    p.add_argument("--target-grid", type=int, default=None,
-                   help="target-SDF grid nodes along the longest side (default: --grid)")
-    p.add_argument("--modes", type=int, default=default_modes,
-                   help=f"maximum number of skinning eigenmodes, m_max (default {default_modes})")
-    p.add_argument("--max-iterations", type=int, default=None,
-                   help=f"cap on gradient steps over all stages (default {d.max_iterations})")
-    p.add_argument("--fast", action="store_true",
-                   help="the fast setting, RegistrationOptions.fast(): grid 48, the band quadrature, "
-                        "the warped pass from the starts only; under half the "
-                        "time, a little less accurate; the flags below override it (docs/method.md, "
-                        "\"The fast setting\")")
-    p.add_argument("--fastest", action="store_true",
-                   help="the fastest setting, RegistrationOptions.fastest(): the warped rest field alone "
-                        "from the rest pose and the SDF alignment, refined on Eq. (3), no runs of "
-                        "Algorithm 1 from the starts; about a quarter of the default's time, less "
-                        "accurate than --fast; the flags below override it (docs/method.md, \"The "
-                        "fastest setting\")")
-    p.add_argument("--optimizer", choices=list(OPTIMIZERS), default=None,
-                   help=f"'lm' (Levenberg-Marquardt in the subspace) or "
-                        f"'paper' (Algorithm 1's gradient descent from the rest pose: with "
-                        f"--init none), unless that is given "
-                        f"(default {d.optimizer!r})")
-    p.add_argument("--quadrature", choices=list(QUADRATURES), default=None,
-                   help=f"'full' grid (Eq. 3) or 'band': full grid near the surfaces, coarse "
-                        f"blocks elsewhere (default {d.quadrature!r})")
-    p.add_argument("--preconditioner", choices=list(PRECONDITIONERS), default=None,
-                   help="'block' (default) or the paper's plain gradient step 'none'")
-    p.add_argument("--init", choices=list(INITIALIZATIONS), default=None,
-                   help="global alignment before the optimization: a rigid motion or similarity "
-                        "minimizing the SDF energy from several orientations (default "
-                        f"{d.initialization}; docs/method.md)")
-    p.add_argument("--coarse-starts", action=argparse.BooleanOptionalAction, default=None,
-                   help="run the starts on every other grid node and keep the one the rule among "
-                        "starts chooses (default on, off with --optimizer paper; docs/method.md)")
-    p.add_argument("--warped-pass", action=argparse.BooleanOptionalAction, default=None,
-                   help="after the runs, minimize the rest source's distance field carried by the "
-                        "subspace (no source queries) from every start, refine the best on the "
-                        "SDF energy and keep the lower objective (default on, off with "
-                        "--optimizer paper; docs/method.md)")
-    p.add_argument("--field-only", action=argparse.BooleanOptionalAction, default=None,
-                   help="with --warped-pass, no runs of Algorithm 1 on the SDF energy from the starts: "
-                        "the warped rest field alone, its best result refined (default off, on with "
-                        "--fastest)")
-    p.add_argument("--warped-candidates", action=argparse.BooleanOptionalAction, default=None,
-                   help="also start the warped rest field from the initialization's other "
-                        f"orientations (default {'on' if d.warped_candidates else 'off'}; docs/method.md)")
-    p.add_argument("--warped-choice", choices=list(WARPED_CHOICES), default=None,
-                   help="which warped-field results are refined: lowest 'objective' (one SDF "
-                        "evaluation each), lowest 'field' energy (none), or 'both' "
-                        f"(default {d.warped_choice!r})")
-    p.add_argument("--warped-refine", type=int, default=None,
-                   help="how many warped-field results each ranking of --warped-choice refines "
-                        f"(default {d.warped_refine})")
-    p.add_argument("--warped-prune-modes", type=int, default=None,
-                   help="the warped rest field goes past this many modes only from the starts whose "
-                        "field energy is within --warped-prune-ratio of the lowest there (0: from every "
-                        f"start; default {d.warped_prune_modes})")
-    p.add_argument("--warped-prune-ratio", type=float, default=None,
-                   help=f"see --warped-prune-modes (default {d.warped_prune_ratio})")
-    p.add_argument("--warped-hops", type=int, default=None,
-                   help="after the warped pass, at most this many hops from the kept result: the "
-                        "warped field minimized with all modes, refined on the SDF energy, kept when "
-                        "its objective is below --warped-hop-ratio times the result it left (0: none; "
-                        f"default {d.warped_hops}; docs/method.md)")
-    p.add_argument("--warped-hop-iterations", type=int, default=None,
-                   help=f"the field's steps in a hop (default {d.warped_hop_iterations})")
-    p.add_argument("--warped-hop-ratio", type=float, default=None,
-                   help="a hop is kept only when its objective is below this times the result it "
-                        f"left (default {d.warped_hop_ratio})")
-    p.add_argument("--warped-descriptors", action=argparse.BooleanOptionalAction, default=None,
-                   help="after the hops, one more hop through the warped field with the heat kernel "
-                        "signatures of both meshes, so that parts land on parts of their own shape, "
-                        "kept as a hop is (needs a target mesh; default "
-                        f"{'on' if d.warped_descriptors else 'off'}; docs/method.md)")
-    p.add_argument("--warped-descriptor-weight", type=float, default=None,
-                   help=f"the signatures' weight in that hop's field (default {d.warped_descriptor_weight})")
-    p.add_argument("--two-way", action="store_true",
-                   help="also register the target onto the source, start two runs from the "
-                        "correspondences it implies and keep the lowest objective: about twice "
-                        "the time, more accurate on hard poses (needs a target mesh; "
-                        "docs/method.md)")
-    p.add_argument("--isometry-weight", type=float, default=None, metavar="W",
-                   help=f"weight of the isometry prior, a penalty on uneven edge stretch added to "
-                        f"the SDF energy (0: the SDF energy alone, as the paper; default "
-                        f"{d.isometry_weight:g}, 0 with --optimizer paper; docs/method.md)")
-    p.add_argument("--seed", type=int, default=d.seed, help="seed of the eigensolver's start vector")
-    p.add_argument("--memory-limit", type=float, default=None, metavar="GB",
-                   help=f"refuse runs estimated to need more memory (default {d.memory_limit_gb:g}; 0: no limit)")
-    _add_target_sdf_args(p)
+                   help="quadrature points along the longest side of the box (default "
+                        f"{default_grid or d.grid}, or the preset's)")
+    p.add_argument("--modes", type=int, default=None,
+                   help=f"maximum number of skinning eigenmodes, m_max (default {default_modes or d.modes})")
+    p.set_defaults(default_grid=default_grid, default_modes=default_modes)
     p.add_argument("-v", "--verbose", action="store_true", help="log details and show tracebacks")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress display")
-
-
-def _add_target_sdf_args(p: argparse.ArgumentParser) -> None:
-    d = RegistrationOptions()
-    p.add_argument("--target-backend", choices=list(TARGET_BACKENDS), default=None,
-                   help=f"target-SDF storage: dense grid or narrow-band OpenVDB level set "
-                        f"(default {d.target_backend}; vdb needs `bash dev.sh vdb-env`)")
-    p.add_argument("--target-sign", choices=list(SIGN_METHODS), default=None,
-                   help=f"inside test of the target: generalized winding number (robust to holes) "
-                        f"or ray parity (default {d.target_sign})")
 
 
 def _summary(result, paths) -> str:
@@ -269,7 +164,7 @@ def _summary(result, paths) -> str:
 def _run(source, target, args, inputs, ground_truth=None, mesh_format="ply", landmarks=None) -> int:
     from .register import Registration
 
-    options = _options_from_args(args)
+    options = options_from_args(args)
     progress = None if args.quiet else ProgressPrinter()
     reg = Registration(source, target, options, landmarks=landmarks)
     try:
@@ -494,10 +389,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--landmarks", default=None, metavar="CSV",
                    help="landmarks: lines 'source_vertex_index, x, y, z' (target point in the "
                         "target's frame), optional header")
-    p.add_argument("--landmark-weight", type=float, default=None, metavar="W",
-                   help=f"weight of the landmark term, relative to the SDF term's mean square over "
-                        f"the box (default {d.landmark_weight:g})")
-    _add_common(p, d.grid, d.modes)
+    _add_common(p, None, None)
     p.set_defaults(func=cmd_register)
 
     p = sub.add_parser("demo", help="register the built-in capsule pair (no data needed)")

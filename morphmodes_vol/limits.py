@@ -119,6 +119,6 @@ def check_memory(estimate: MemoryEstimate, limit_gb: float | None, what: str) ->
     if limit_gb is not None and estimate.total > limit_gb * GB:
         raise OptionError(
             f"{what} would need {estimate.describe()}, above the limit of {limit_gb:g} GB "
-            "(option memory_limit_gb, --memory-limit): lower the grid or the modes, simplify "
+            "(option memory_limit_gb, --set memory_limit_gb=GB): lower the grid or the modes, simplify "
             "the mesh, or raise the limit"
         )

@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import typing
+from importlib import resources
 from dataclasses import dataclass
 from typing import Literal
 
@@ -18,7 +19,7 @@ from .sdf.points import POINT_SDF_METHODS, PointSDFMethod
 from .sdf.source import SignMethod
 from .sdf.target import TARGET_BACKENDS, TargetBackend
 
-__all__ = ["RegistrationOptions", "Preconditioner", "PRECONDITIONERS", "SIGN_METHODS", "Optimizer",
+__all__ = ["RegistrationOptions", "parse_setting", "preset_table", "preset_description", "Preconditioner", "PRECONDITIONERS", "SIGN_METHODS", "Optimizer",
            "OPTIMIZERS", "Quadrature", "QUADRATURES", "Initialization", "INITIALIZATIONS", "WarpedChoice",
            "WARPED_CHOICES"]
 
@@ -428,51 +429,57 @@ class RegistrationOptions:
 
     @classmethod
     def paper_faithful(cls) -> "RegistrationOptions":
-        """The paper's settings as this library implements them (issue 2's defaults):
-        Algorithm 1's gradient descent on the full grid, from the rest pose (no
-        initialization stage, one run on one grid, no warped rest field), Eq. (3) alone (no
+        """The ``"paper"`` preset: Algorithm 1's gradient descent on the full grid from the
+        rest pose (no initialization, one run, no warped rest field), Eq. (3) alone (no
         isometry prior), 20 modes."""
-        return cls(optimizer="paper", quadrature="full", initialization="none", modes=20,
-                   isometry_weight=0.0, coarse_starts=False, warped_pass=False)
+        return cls.preset("paper")
 
     @classmethod
     def fast(cls) -> "RegistrationOptions":
-        """The fast setting (issue 6): the defaults on a grid of 48 instead of 64, on the band
-        quadrature (``quadrature="band"``), without the warped pass's starts from the
-        initialization's other orientations (``warped_candidates=False``).
-        ``fast().replace(grid=g)`` for a grid study (docs/method.md, "The fast setting")."""
-        return cls(grid=48, quadrature="band", warped_candidates=False)
+        """The ``"fast"`` preset: the defaults on a grid of 48 on the band quadrature, without
+        the warped pass's starts from other orientations. ``fast().replace(grid=g)`` for a
+        grid study."""
+        return cls.preset("fast")
 
     @classmethod
     def fastest(cls) -> "RegistrationOptions":
-        """The fastest setting (issue 6): the warped rest field alone from the rest pose and the
-        SDF alignment (``field_only``: no run of Algorithm 1 on Eq. 3 from them), its result of
-        lowest field energy refined on Eq. (3), on the defaults' grid of 64; no start from
-        the initialization's other orientations, no hop
-        (``warped_hops=0``, ``warped_descriptors=False``); and, cheaper where the accuracy
-        study's 30 errors stayed the same (one better), a band of 1.5 cells each side for
-        the refinement on the band quadrature (``quadrature="band"``, ``band_cells=1.5``), the field's starts compared after 6 modes
-        (``warped_prune_modes=6``) and 4 orientations refined by the initialization
-        (``init_candidates=4``). docs/method.md, "The fastest setting", has its accuracy and
-        time against the defaults and NRICP."""
-        return cls(field_only=True, warped_candidates=False, warped_hops=0,
-                   warped_descriptors=False, quadrature="band", band_cells=1.5, warped_prune_modes=6,
-                   init_candidates=4)
+        """The ``"fastest"`` preset: the warped rest field alone from the starts (no run of
+        Algorithm 1 on Eq. 3), its result of lowest field energy refined on Eq. (3) on the
+        band quadrature; no other orientations, no hops."""
+        return cls.preset("fastest")
 
     @classmethod
     def preset(cls, name: Preset) -> "RegistrationOptions":
-        """The options of a named setting: ``"default"`` (``RegistrationOptions()``),
-        ``"fast"`` (:meth:`fast`), ``"fastest"`` (:meth:`fastest`) or ``"paper"``
-        (:meth:`paper_faithful`); ``replace`` then changes any field.
+        """The options of a named preset, read from ``morphmodes_vol/presets/<name>.toml``
+        (its ``[options]`` table changes the defaults); ``replace`` then changes any field.
 
         Examples
         --------
         >>> RegistrationOptions.preset("fast") == RegistrationOptions.fast()
         True
+        >>> RegistrationOptions.preset("fast").grid
+        48
         """
-        if name not in PRESETS:
-            raise OptionError(f"preset {name!r} is unknown: expected one of {PRESETS}")
-        return {"default": cls, "fast": cls.fast, "fastest": cls.fastest, "paper": cls.paper_faithful}[name]()
+        return cls(**preset_table(name))
+
+    @classmethod
+    def from_table(cls, table: typing.Mapping[str, object]) -> "RegistrationOptions":
+        """Options from a table of settings, as a pipeline's ``[options]``, a ``--config`` file
+        or ``--set`` give them: an optional ``preset`` name, then any fields that change it.
+
+        Raises
+        ------
+        OptionError
+            For an unknown preset, an unknown field or an invalid value.
+
+        Examples
+        --------
+        >>> RegistrationOptions.from_table({"preset": "fast", "grid": 40}).grid
+        40
+        """
+        table = dict(table)
+        base = preset_table(table.pop("preset", "default"))
+        return cls().replace(**{**base, **table})
 
     def __post_init__(self) -> None:
         def need(cond: bool, name: str, what: str) -> None:
@@ -628,3 +635,48 @@ def _is_int(value) -> bool:
 def _is_real(value) -> bool:
     """A finite int or float (not a bool, a string or NaN)."""
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def preset_table(name: str) -> dict:
+    """The ``[options]`` table of the preset ``name`` (a TOML file shipped in
+    ``morphmodes_vol/presets``)."""
+    return dict(_preset_file(name).get("options", {}))
+
+
+def preset_description(name: str) -> str:
+    """One line on what the preset ``name`` is for (its file's ``description``)."""
+    return _preset_file(name).get("description", "")
+
+
+def _preset_file(name: str) -> dict:
+    if name not in PRESETS:
+        raise OptionError(f"preset {name!r} is unknown: expected one of {PRESETS}")
+    return toml_loads(resources.files(__package__).joinpath("presets", f"{name}.toml").read_text())
+
+
+def parse_setting(item: str) -> tuple[str, object]:
+    """``"key=value"`` -> ``(key, value)``, the value read as a TOML value (``48``, ``0.5``,
+    ``true``, ``"band"``), else kept as the string (``band``).
+
+    Examples
+    --------
+    >>> parse_setting("grid=48"), parse_setting("quadrature=band"), parse_setting("warped_pass=false")
+    (('grid', 48), ('quadrature', 'band'), ('warped_pass', False))
+    """
+    key, sep, value = item.partition("=")
+    key = key.strip()
+    if not sep or not key:
+        raise OptionError(f"{item!r}: expected KEY=VALUE, e.g. grid=48")
+    try:
+        return key, toml_loads(f"v = {value.strip()}")["v"]
+    except Exception:  # not a TOML value: a bare string
+        return key, value.strip()
+
+
+def toml_loads(text: str) -> dict:
+    """Parse TOML text (``tomllib``, or ``tomli`` on Python 3.10)."""
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        import tomli as tomllib
+    return tomllib.loads(text)

@@ -389,7 +389,7 @@ def test_cli_memory_limit_option(tmp_path, capsys):
     V, F, target = small_pair()
     src, tgt = write(tmp_path / "s.obj", V, F), write(tmp_path / "t.obj", target, F)
     assert main(["register", str(src), str(tgt), "-o", str(tmp_path / "o"), "--grid", "12",
-                 "--memory-limit", "0.01", "-q"]) == 2
+                 "--set", "memory_limit_gb=0.01", "-q"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"{src} (66 vertices)" in err[0] and "above the limit of 0.01 GB" in err[0]
 

@@ -103,30 +103,48 @@ def test_demo_runs_without_shared_data(tmp_path, capsys):
     assert str(out) in printed and "ground-truth error" in printed
 
 
-def test_options_from_the_flags_and_the_presets():
-    from morphmodes_vol.cli import _options_from_args, build_parser
-    from morphmodes_vol.options import RegistrationOptions as mm_options
+def test_options_from_preset_config_and_set(tmp_path, capsys):
+    """``--preset``, then ``--config``, then ``--grid``/``--modes``, then each ``--set``: the
+    same table a pipeline's ``[options]`` is (RegistrationOptions.from_table)."""
+    from morphmodes_vol.cli import build_parser, options_from_args
+    from morphmodes_vol.options import RegistrationOptions as O
 
-    def options(*flags):
-        return _options_from_args(build_parser().parse_args(["register", "s.obj", "t.obj", "-o", "out", *flags]))
+    def options(*flags, command="register"):
+        files = ["s.obj", "t.obj"] if command == "register" else []
+        return options_from_args(build_parser().parse_args([command, *files, "-o", "out", *flags]))
 
-    default = options()
-    assert (default.optimizer, default.quadrature, default.initialization) == ("lm", "full", "rigid")
-    paper = options("--optimizer", "paper")
-    assert paper == mm_options().paper_faithful().replace(modes=paper.modes, grid=paper.grid)
-    assert options("--optimizer", "paper", "--init", "rigid").initialization == "rigid"
-    assert default.coarse_starts and not paper.coarse_starts
-    assert not options("--no-coarse-starts").coarse_starts
-    assert options("--optimizer", "paper", "--coarse-starts").coarse_starts
-    # --fast is RegistrationOptions.fast() (a preset of three options), which the other flags override
-    quick = options("--fast")
-    assert quick == mm_options.fast().replace(modes=quick.modes)
-    assert (quick.grid, default.grid) == (mm_options.fast().grid, mm_options().grid)
-    assert options("--fast", "--quadrature", "full").quadrature == "full" and options("--fast", "--grid", "64").grid == 64
-    with pytest.raises(OptionError, match="--fast and --optimizer paper"):
-        options("--fast", "--optimizer", "paper")
-    mixed = options("--optimizer", "lm", "--quadrature", "band")
-    assert (mixed.optimizer, mixed.quadrature) == ("lm", "band")
+    assert options() == O()
+    assert options("--preset", "paper") == O.paper_faithful()
+    assert options("--preset", "fast") == O.fast() and O.fast().grid == 48
+    assert options("--preset", "fast", "--grid", "64") == O.fast().replace(grid=64)
+    assert options("--preset", "fastest", "--set", "warped_hops=1") == O.fastest().replace(warped_hops=1)
+    assert options("--set", "quadrature=band", "--set", "warped_pass=false", "--set", "band_cells=1.5") == \
+        O(quadrature="band", warped_pass=False, band_cells=1.5)
+    assert options("--set", "memory_limit_gb=0").memory_limit_gb is None
+    config = tmp_path / "c.toml"
+    config.write_text('preset = "fast"\nwarped_hops = 0\n')
+    assert options("--config", str(config)) == O.fast().replace(warped_hops=0)
+    assert options("--config", str(config), "--preset", "default") == O(warped_hops=0)
+    assert options("--config", str(config), "--set", "warped_hops=2").warped_hops == 2
+    config.write_text('name = "x"\n[options]\nmodes = 8\n')  # a pipeline definition's table
+    assert options("--config", str(config)) == O(modes=8)
+    # the demo's own grid and modes unless given
+    assert (options(command="demo").grid, options(command="demo").modes) == (48, 12)
+    assert options("--grid", "32", command="demo").grid == 32
+    with pytest.raises(OptionError, match="unknown option"):
+        options("--set", "warp_hops=1")
+    with pytest.raises(OptionError, match="KEY=VALUE"):
+        options("--set", "grid")
+    with pytest.raises(OptionError, match="warped_hops"):
+        options("--set", "warped_hops=-1")
+    with pytest.raises(OptionError, match="no such config file"):
+        options("--config", str(tmp_path / "missing.toml"))
+    with pytest.raises(SystemExit):  # argparse: an unknown preset
+        options("--preset", "turbo")
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["register", "--help"])
+    flags = [line for line in capsys.readouterr().out.splitlines() if line.startswith("  -")]
+    assert "--preset" in "".join(flags) and len(flags) < 25
 
 
 def test_progress_lines_name_the_start_and_follow_each_start_to_a_new_mode():

@@ -8,7 +8,6 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import morphmodes_vol as mm
-from morphmodes_vol.cli import _options_from_args, build_parser
 from morphmodes_vol.descriptors import heat_kernel_signature, surface_descriptor_grid
 from morphmodes_vol.eigenbasis import LBSBasis, mesh_skinning_weights
 from morphmodes_vol.primitives import bend, capsule, icosphere
@@ -174,11 +173,6 @@ def test_descriptor_options_are_checked_and_on_the_command_line():
         mm.RegistrationOptions(warped_descriptors=1)
     with pytest.raises(mm.OptionError, match="warped_descriptor_weight"):
         mm.RegistrationOptions(warped_descriptor_weight=-0.1)
-    for flags, change in (([], {}), (["--no-warped-descriptors"], {"warped_descriptors": False}),
-                          (["--warped-descriptors"], {"warped_descriptors": True}),
-                          (["--warped-descriptor-weight", "0.01"], {"warped_descriptor_weight": 0.01})):
-        args = build_parser().parse_args(["register", "a.obj", "b.obj", "-o", "out", *flags])
-        assert _options_from_args(args) == mm.RegistrationOptions().replace(**change), flags
 
 
 @pytest.mark.realdata

@@ -152,7 +152,7 @@ def test_cli_rolled_back_run_exits_0_with_complete_outputs(tmp_path, monkeypatch
     monkeypatch.setattr(mm.Registration, "energy", lambda self: FaultyEnergy(inner(self), range(5, 10**6)))
     out = tmp_path / "out"
     assert main(["register", str(src), str(tgt), "-o", str(out), "--grid", "12", "--modes", "2", "-q",
-                 "--no-warped-pass"]) == 0
+                 "--set", "warped_pass=false"]) == 0
     printed = capsys.readouterr().out
     assert "status: rolled_back" in printed and "last good state" in printed
     assert strict_json(out / "report.json")["status"] == "rolled_back"

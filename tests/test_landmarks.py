@@ -240,7 +240,7 @@ def test_cli_register_with_landmarks(twisted_pair, tmp_path, capsys):
                                                           in zip(idx, truth[idx])))
     out = tmp_path / "out"
     code = main(["register", str(src), str(tgt), "-o", str(out), "--grid", "16", "--modes", "2",
-                 "--optimizer", "lm", "--landmarks", str(lm), "--landmark-weight", "2",
+                 "--landmarks", str(lm), "--set", "landmark_weight=2",
                  "--ground-truth", str(tgt), "-q"])
     assert code == 0
     report = json.loads((out / "report.json").read_text())

@@ -53,7 +53,7 @@ def test_render_command_on_a_result_folder(tmp_path, small_capsule, capsys):
     trimesh.Trimesh(V * [1.1, 1, 1], F, process=False).export(tgt)
     out = tmp_path / "res"
     assert main(["register", str(src), str(tgt), "-o", str(out), "--grid", "12", "--modes", "1",
-                 "--max-iterations", "3", "--ground-truth", str(tgt), "-q"]) == 0
+                 "--set", "max_iterations=3", "--ground-truth", str(tgt), "-q"]) == 0
     assert json.loads((out / "report.json").read_text())["inputs"]["ground_truth"] == str(tgt)
     png = tmp_path / "r.png"
     assert main(["render", str(out), str(src), "-o", str(png), "--with-inputs"]) == 0

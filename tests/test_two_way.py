@@ -5,7 +5,6 @@ import numpy as np
 import pytest
 
 import morphmodes_vol as mm
-from morphmodes_vol.cli import _options_from_args, build_parser
 from morphmodes_vol.eigenbasis import LBSBasis, mesh_skinning_weights
 from morphmodes_vol.primitives import bend, capsule
 from morphmodes_vol.sdf import closest_points
@@ -142,10 +141,6 @@ def test_two_way_options_and_targets_are_checked(tmp_path):
     tet_faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
     with pytest.raises(mm.OptionError, match="exceeds the target's 4 vertices"):
         mm.Registration((V, F), (tet, tet_faces), mm.RegistrationOptions(grid=16, modes=5, two_way=True))
-    args = build_parser().parse_args(["register", "a.obj", "b.obj", "-o", "out", "--two-way"])
-    assert _options_from_args(args).two_way
-    args = build_parser().parse_args(["register", "a.obj", "b.obj", "-o", "out"])
-    assert not _options_from_args(args).two_way
 
 
 @pytest.mark.realdata

@@ -9,7 +9,6 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import morphmodes_vol as mm
-from morphmodes_vol.cli import _options_from_args, build_parser
 from morphmodes_vol.eigenbasis import LBSBasis, mesh_skinning_weights
 from morphmodes_vol.isometry import IsometryEnergy
 from morphmodes_vol.primitives import bend, capsule, icosphere
@@ -434,22 +433,7 @@ def test_warped_pass_options_are_checked_and_on_the_command_line():
         mm.RegistrationOptions(warped_hop_iterations=0)
     with pytest.raises(mm.OptionError, match="warped_hop_ratio"):
         mm.RegistrationOptions(warped_hop_ratio=0.0)
-    for flags, on in (([], True), (["--no-warped-pass"], False), (["--warped-pass"], True),
-                      (["--optimizer", "paper"], False), (["--optimizer", "paper", "--warped-pass"], True)):
-        args = build_parser().parse_args(["register", "a.obj", "b.obj", "-o", "out", *flags])
-        assert _options_from_args(args).warped_pass is on, flags
     assert not mm.RegistrationOptions.paper_faithful().warped_pass
-    for flags, change in (([], {}), (["--warped-candidates"], {"warped_candidates": True}),
-                          (["--no-warped-candidates"], {"warped_candidates": False}),
-                          (["--warped-choice", "field"], {"warped_choice": "field"}),
-                          (["--warped-refine", "2"], {"warped_refine": 2}),
-                          (["--warped-prune-modes", "0"], {"warped_prune_modes": 0}),
-                          (["--warped-prune-ratio", "3"], {"warped_prune_ratio": 3.0}),
-                          (["--warped-hops", "0"], {"warped_hops": 0}),
-                          (["--warped-hop-iterations", "5"], {"warped_hop_iterations": 5}),
-                          (["--warped-hop-ratio", "1"], {"warped_hop_ratio": 1.0})):
-        args = build_parser().parse_args(["register", "a.obj", "b.obj", "-o", "out", *flags])
-        assert _options_from_args(args) == mm.RegistrationOptions().replace(**change), flags
 
 
 def test_field_only_refines_the_field_alone_and_recovers_a_rigid_motion():
@@ -490,15 +474,6 @@ def test_field_only_options_and_the_fastest_flag():
     assert fastest.replace(field_only=False, warped_candidates=True, warped_hops=1,
                            warped_descriptors=True, quadrature="full", band_cells=2.0,
                            warped_prune_modes=8, init_candidates=6) == mm.RegistrationOptions()
-    for flags, want in ((["--fastest"], fastest), (["--fastest", "--grid", "32"], fastest.replace(grid=32)),
-                        (["--fastest", "--warped-hops", "1"], fastest.replace(warped_hops=1)),
-                        (["--field-only"], mm.RegistrationOptions(field_only=True))):
-        args = build_parser().parse_args(["register", "a.obj", "b.obj", "-o", "out", *flags])
-        assert _options_from_args(args) == want, flags
-    for flags in (["--fastest", "--fast"], ["--fastest", "--optimizer", "paper"]):
-        args = build_parser().parse_args(["register", "a.obj", "b.obj", "-o", "out", *flags])
-        with pytest.raises(mm.OptionError, match="two different settings"):
-            _options_from_args(args)
 
 
 @pytest.mark.realdata

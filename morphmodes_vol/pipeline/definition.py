@@ -17,7 +17,7 @@ from typing import Any
 
 from ..errors import OptionError, PipelineError
 from ..export import MESH_FORMATS
-from ..options import RegistrationOptions
+from ..options import RegistrationOptions, preset_table
 
 __all__ = ["Pipeline", "PairSpec", "load_pipeline", "parse_pipeline"]
 
@@ -179,14 +179,12 @@ def _options(doc: dict, ck: _Checker) -> RegistrationOptions:
     table = doc.get("options", {})
     names = {f.name for f in dataclasses.fields(RegistrationOptions)}
     ck.keys(table, names | {"preset"}, "options")
-    # a named setting (RegistrationOptions.preset, which checks the name) that the other keys change
-    table = dict(table)
     try:
-        base = RegistrationOptions.preset(table.pop("preset", "default"))
+        preset_table(table.get("preset", "default"))
     except OptionError as exc:
         ck.fail("options.preset", str(exc))
-    try:
-        return base.replace(**table)
+    try:  # the path of the command line's --preset, --config and --set too
+        return RegistrationOptions.from_table(table)
     except (OptionError, TypeError) as exc:
         ck.fail("options", str(exc))
 
