@@ -25,7 +25,7 @@ _blas_users = 0
 _blas_limiter = None
 
 
-def _release_blas_control() -> None:
+def release_blas_control() -> None:
     """threadpoolctl >= 3.8 lets one thread at a time set OpenBLAS's process-wide pool (the
     others' calls do nothing): give that control back if this thread holds it, so that
     whichever thread leaves last can restore the limit."""
@@ -54,7 +54,7 @@ def single_threaded_blas():
     with _blas_lock:
         if _blas_users == 0:
             _blas_limiter = threadpool_limits(limits=1, user_api="blas")
-            _release_blas_control()
+            release_blas_control()
         _blas_users += 1
     try:
         yield
@@ -63,5 +63,5 @@ def single_threaded_blas():
             _blas_users -= 1
             if _blas_users == 0:
                 _blas_limiter.restore_original_limits()
-                _release_blas_control()
+                release_blas_control()
                 _blas_limiter = None

@@ -293,7 +293,7 @@ def cmd_run(args) -> int:
 def cmd_sdf(args) -> int:
     from .mesh import as_mesh, bbox_diagonal
     from .pointcloud import is_point_cloud_file
-    from .register import scan_target
+    from .targets import scan_target
     from .sdf import Grid, build_target_sdf
 
     out = check_output_path(args.output, "file", inputs=[args.mesh])

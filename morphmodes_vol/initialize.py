@@ -289,7 +289,7 @@ def _skew(w: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
 
 
-def _rodrigues(w: np.ndarray) -> np.ndarray:
+def rodrigues(w: np.ndarray) -> np.ndarray:
     """Rotation matrix of the rotation vector ``w (3,)``."""
     theta = float(np.linalg.norm(w))
     K = _skew(w)
@@ -299,7 +299,7 @@ def _rodrigues(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(theta) * K + (1.0 - np.cos(theta)) * (K @ K)
 
 
-class _Similarity:
+class Similarity:
     """``x -> scale * R @ x + t``."""
 
     def __init__(self, R: np.ndarray, t: np.ndarray, scale: float = 1.0):
@@ -308,10 +308,10 @@ class _Similarity:
     def apply(self, X: np.ndarray) -> np.ndarray:
         return self.scale * X @ self.R.T + self.t
 
-    def compose(self, w: np.ndarray, t: np.ndarray, s: float, c: np.ndarray) -> "_Similarity":
+    def compose(self, w: np.ndarray, t: np.ndarray, s: float, c: np.ndarray) -> "Similarity":
         """This map followed by ``y -> exp(s) Rot(w) (y - c) + c + t``."""
-        Rw, e = _rodrigues(w), float(np.exp(s))
-        return _Similarity(Rw @ self.R, e * Rw @ (self.t - c) + c + t, e * self.scale)
+        Rw, e = rodrigues(w), float(np.exp(s))
+        return Similarity(Rw @ self.R, e * Rw @ (self.t - c) + c + t, e * self.scale)
 
     def matrix(self) -> np.ndarray:
         return np.hstack([self.scale * self.R, self.t[:, None]])
@@ -393,7 +393,7 @@ class _Evaluation:
     normal: np.ndarray
 
 
-def _evaluate(field: RigidSourceField, S: "_Similarity", Q: np.ndarray, g: np.ndarray,
+def evaluate(field: RigidSourceField, S: "Similarity", Q: np.ndarray, g: np.ndarray,
               weight: np.ndarray) -> _Evaluation:
     """Eq. (3) for the source moved by ``S``: ``f(q) = s f_0(R^T (q - t) / s)``,
     ``grad f(q) = R grad f_0(...)``."""
@@ -404,7 +404,7 @@ def _evaluate(field: RigidSourceField, S: "_Similarity", Q: np.ndarray, g: np.nd
     return _Evaluation(float((weight * r) @ r), r, f, n0 @ S.R.T)
 
 
-def _rigid_jacobian(ev: _Evaluation, Q: np.ndarray, c: np.ndarray, similarity: bool) -> np.ndarray:
+def rigid_jacobian(ev: _Evaluation, Q: np.ndarray, c: np.ndarray, similarity: bool) -> np.ndarray:
     """``J (k, 6 or 7)``: derivative of the residual with respect to ``(w, t[, s])`` of the
     increment ``y -> exp(s) Rot(w) (y - c) + c + t`` applied after the current map.
 
@@ -420,7 +420,7 @@ def _rigid_jacobian(ev: _Evaluation, Q: np.ndarray, c: np.ndarray, similarity: b
     return np.concatenate(cols, axis=1)
 
 
-def _motion_metric(X: np.ndarray, c: np.ndarray, similarity: bool) -> np.ndarray:
+def motion_metric(X: np.ndarray, c: np.ndarray, similarity: bool) -> np.ndarray:
     """``M (6 or 7, 6 or 7)``: mean squared vertex displacement of an increment ``(w, t[, s])``
     about ``c``, ``p^T M p = mean_v |w x (x_v - c) + s (x_v - c) + t|^2`` (the damping's
     metric: steps are measured by how far they move the source)."""
@@ -436,8 +436,8 @@ def _motion_metric(X: np.ndarray, c: np.ndarray, similarity: bool) -> np.ndarray
 
 
 def _refine(field: RigidSourceField, Q: np.ndarray, g: np.ndarray, weight: np.ndarray, X0: np.ndarray,
-            start: _Similarity, ev: _Evaluation, similarity: bool, iterations: int,
-            damping: float = 1e-3) -> tuple[_Similarity, _Evaluation, int]:
+            start: Similarity, ev: _Evaluation, similarity: bool, iterations: int,
+            damping: float = 1e-3) -> tuple[Similarity, _Evaluation, int]:
     """Levenberg-Marquardt on Eq. (3) over rigid motions or similarities, from ``start``.
 
     Returns the refined map, its evaluation and the number of field evaluations spent.
@@ -446,10 +446,10 @@ def _refine(field: RigidSourceField, Q: np.ndarray, g: np.ndarray, weight: np.nd
     for _ in range(iterations):
         X = S.apply(X0)
         c = X.mean(axis=0)
-        J = _rigid_jacobian(ev, Q, c, similarity)
+        J = rigid_jacobian(ev, Q, c, similarity)
         WJ = weight[:, None] * J
         model = NormalEquations(A=J.T @ WJ, g=WJ.T @ ev.residual)
-        metric = _motion_metric(X, c, similarity)
+        metric = motion_metric(X, c, similarity)
         accepted = False
         for _ in range(8):
             p = lm_solve(model, metric, damping)
@@ -458,7 +458,7 @@ def _refine(field: RigidSourceField, Q: np.ndarray, g: np.ndarray, weight: np.nd
                 break
             w, t, s = p[:3], p[3:6], (p[6] if similarity else 0.0)
             trial = S.compose(w, t, s, c)
-            trial_ev = _evaluate(field, trial, Q, g, weight)
+            trial_ev = evaluate(field, trial, Q, g, weight)
             spent += 1
             rho = (ev.energy - trial_ev.energy) / predicted
             if np.isfinite(trial_ev.energy) and rho > 1e-4:
@@ -474,10 +474,10 @@ def _refine(field: RigidSourceField, Q: np.ndarray, g: np.ndarray, weight: np.nd
     return S, ev, spent
 
 
-_FIELD_MAX_RESOLUTION = 160  # nodes per side: at most 4.1M nodes, 131 MB with the gradient
+FIELD_MAX_RESOLUTION = 160  # nodes per side: at most 4.1M nodes, 131 MB with the gradient
 
 
-def _source_field(X0: np.ndarray, F: np.ndarray, Q: np.ndarray, spacing: float, cs: np.ndarray,
+def source_field(X0: np.ndarray, F: np.ndarray, Q: np.ndarray, spacing: float, cs: np.ndarray,
                   ct: np.ndarray, scale: float, sign: str) -> RigidSourceField:
     """The source's field on a grid of the coarse spacing whose box holds every point the
     alignment samples: the quadrature box (the rest pose) and the ball about the source's
@@ -490,11 +490,11 @@ def _source_field(X0: np.ndarray, F: np.ndarray, Q: np.ndarray, spacing: float, 
     lo = np.minimum(Q.min(axis=0), cs - radius)
     hi = np.maximum(Q.max(axis=0), cs + radius)
     resolution = int(np.ceil(float((hi - lo).max()) / spacing)) + 1
-    if resolution > _FIELD_MAX_RESOLUTION:  # a fine init_grid: bound the field's memory
+    if resolution > FIELD_MAX_RESOLUTION:  # a fine init_grid: bound the field's memory
         log.info("source field for the alignment: %d nodes per side capped at %d (spacing %.3g "
-                 "instead of the coarse grid's %.3g)", resolution, _FIELD_MAX_RESOLUTION,
-                 float((hi - lo).max()) / (_FIELD_MAX_RESOLUTION - 1), spacing)
-        resolution = _FIELD_MAX_RESOLUTION
+                 "instead of the coarse grid's %.3g)", resolution, FIELD_MAX_RESOLUTION,
+                 float((hi - lo).max()) / (FIELD_MAX_RESOLUTION - 1), spacing)
+        resolution = FIELD_MAX_RESOLUTION
     grid = Grid.covering(lo, hi, resolution)
     margin = 2.0 * spacing
 
@@ -575,13 +575,13 @@ def align(
     scale = 1.0
     if kind == "similarity" and len(inside_s) and len(inside_t):
         scale = float(np.clip((len(inside_t) / len(inside_s)) ** (1.0 / 3.0), 0.5, 2.0))
-    field = _source_field(X0, F, Q, spacing, cs, ct, scale, sign)
+    field = source_field(X0, F, Q, spacing, cs, ct, scale, sign)
     t_field = time.perf_counter() - t0
 
     # every rotation about the centroids (the identity first), and the rest pose itself (last)
-    starts = [_Similarity(R, ct - scale * R @ cs, scale) for R in rotations]
-    starts.append(_Similarity(np.eye(3), np.zeros(3), 1.0))
-    evaluations = [_evaluate(field, S, Q, g, weights) for S in starts]
+    starts = [Similarity(R, ct - scale * R @ cs, scale) for R in rotations]
+    starts.append(Similarity(np.eye(3), np.zeros(3), 1.0))
+    evaluations = [evaluate(field, S, Q, g, weights) for S in starts]
     spent = len(starts)
     screened = np.array([ev.energy for ev in evaluations])
     rest = evaluations[-1]

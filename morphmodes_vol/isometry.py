@@ -150,9 +150,9 @@ class IsometryEnergy(AddedTerm):
         self._pattern = SparsePattern(np.r_[p, q, p, q], np.r_[p, q, q, p], self.n)
         self._incidence = sp.csr_matrix((np.r_[np.ones(e), -np.ones(e)], (np.r_[np.arange(e), np.arange(e)],
                                                                            np.r_[p, q])), shape=(e, self.n))
-        self._last = None  # (X, _stretch(X)) of the last call
+        self._last = None  # (X, stretch(X)) of the last call
 
-    def _stretch(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def stretch(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Penalized residuals ``h(r) (E,)`` (``r`` beyond the tolerance), the mask of edges
         beyond it ``(E,)`` and ``drho_e/dx_i = (x_i - x_j) / l_e^2`` ``(E, 3)``. An
         optimizer's step asks for the term and then its matrix at the same vertices: the last
@@ -173,7 +173,7 @@ class IsometryEnergy(AddedTerm):
 
     def term(self, X: np.ndarray) -> tuple[float, np.ndarray]:
         """``E_iso`` and its vertex gradient ``(n, 3)`` at ``X (n, 3)``."""
-        h, _, drho = self._stretch(np.asarray(X, dtype=np.float64))
+        h, _, drho = self.stretch(np.asarray(X, dtype=np.float64))
         ah = self.shares * h
         # dE/drho = 2 c P^T (a h), P = I - 1 a^T the removal of the weighted mean
         g_rho = 2.0 * self.coefficient * (ah - self.shares * ah.sum())
@@ -185,7 +185,7 @@ class IsometryEnergy(AddedTerm):
         """The term's Gauss-Newton matrix in the vertices at ``X (n, 3)`` (module docstring):
         ``J^T P^T diag(d) P J = J^T diag(d) J - va vd^T - vd va^T + (sum d) va va^T``, the
         first part as sparse coordinate blocks, the others as outer products."""
-        _, active, drho = self._stretch(np.asarray(X, dtype=np.float64))
+        _, active, drho = self.stretch(np.asarray(X, dtype=np.float64))
         dw = self.shares * active  # diag(d) of the edges beyond the tolerance
         c = self.coefficient
         blocks = {}
@@ -219,7 +219,7 @@ class IsometryEnergy(AddedTerm):
         ``(n, n)`` blocks nor their products with ``C`` are formed. On the lion's warped
         rest field, 7-20% of the edges are beyond the tolerance; the same matrix to
         rounding (tested)."""
-        _, active, drho = self._stretch(np.asarray(X, dtype=np.float64))
+        _, active, drho = self.stretch(np.asarray(X, dtype=np.float64))
         c = self.coefficient
         dw = self.shares * active
         C = basis.skinning_matrix(m)

@@ -140,7 +140,7 @@ class BandEnergy:
         self.band, self.margin = float(band), float(margin)
         self.sign, self.samples = sign, samples
         reach = self.band + self.blocks.radius
-        self._near_target = np.abs(self.g_centers) < reach + grid.spacing  # trilinear slack
+        self.near_target = np.abs(self.g_centers) < reach + grid.spacing  # trilinear slack
         self._anchor: np.ndarray | None = None
         # lower bounds of the source's distance at the block centres, valid at _anchor
         self._lower = np.full(self.blocks.counts.size, -np.inf)
@@ -178,11 +178,11 @@ class BandEnergy:
         # others stay far, as a query would find (the slack covers the float32 search).
         # Centres near the target are near whatever the source does, and never queried.
         self._lower -= moved
-        ask = ~self._near_target & (self._lower <= reach + _BOUND_SLACK)
+        ask = ~self.near_target & (self._lower <= reach + _BOUND_SLACK)
         if ask.any():
             self._lower[ask] = closest_points(X, self.F, self.blocks.centers[ask]).distance
         self.centres_queried += int(ask.sum())
-        near = self._near_target | (self._lower < reach)
+        near = self.near_target | (self._lower < reach)
         fine = near[self.blocks.block_of_node]
         far = np.flatnonzero(~near)
         h3 = self.grid.cell_volume

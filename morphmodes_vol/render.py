@@ -58,7 +58,7 @@ def _pyplot():
     return plt
 
 
-def _to_plot_frame(V: np.ndarray, up: int) -> np.ndarray:
+def to_plot_frame(V: np.ndarray, up: int) -> np.ndarray:
     """Cyclic permutation of the axes (keeps handedness) that puts axis ``up`` last, which
     matplotlib draws vertically."""
     order = [(up + 1) % 3, (up + 2) % 3, up]
@@ -133,7 +133,7 @@ def render_panels(
     import matplotlib as mpl
 
     up_i = UP_AXES[up]
-    frames = [_to_plot_frame(p.vertices, up_i) for p in panels]
+    frames = [to_plot_frame(p.vertices, up_i) for p in panels]
     lo = np.min([V.min(axis=0) for V in frames], axis=0)
     hi = np.max([V.max(axis=0) for V in frames], axis=0)
     center, half = (lo + hi) / 2, (hi - lo).max() / 2

@@ -14,12 +14,21 @@ objective from each fit: starts that the forward runs cannot reach on some poses
 
 from __future__ import annotations
 
+import logging
+from typing import TYPE_CHECKING
+
 import numpy as np
 import scipy.sparse as sp
 
 from .sdf import closest_points
 
-__all__ = ["reverse_correspondences", "closest_point_rows"]
+if TYPE_CHECKING:
+    from .register import Registration, RegistrationResult
+    from .runs import StartRun
+
+__all__ = ["reverse_correspondences", "closest_point_rows", "two_way_pass"]
+
+log = logging.getLogger(__name__)
 
 
 def reverse_correspondences(X: np.ndarray, deformed: np.ndarray, faces: np.ndarray,
@@ -84,3 +93,49 @@ def closest_point_rows(X: np.ndarray, faces: np.ndarray, points: np.ndarray) -> 
     k = cp.faces.shape[0]
     return sp.csr_matrix((cp.barycentrics.ravel(), faces[cp.faces].ravel(), np.arange(0, 3 * k + 1, 3)),
                          shape=(k, X.shape[0]))
+
+
+def two_way_pass(reg: "Registration", forward: "StartRun", progress) -> tuple["RegistrationResult", list["StartRun"], dict]:
+    """``two_way`` (docs/method.md, "Two-way registration"): register the target onto the
+    source, fit the subspace to the correspondences it implies, in two ways: the source
+    vertices' counterparts on the target
+    (:func:`~morphmodes_vol.two_way.reverse_correspondences`), and those stacked with the
+    target vertices' counterparts on the source's surface
+    (:func:`~morphmodes_vol.two_way.closest_point_rows`); minimize the objective from
+    each fit on all modes (one stage of at most ``two_way_iterations`` Levenberg-Marquardt
+    steps); and compare with the ``forward`` run's result by the objective on the full
+    grid. Returns the reverse registration, the two runs and the report
+    (``metrics["two_way"]``)."""
+    from dataclasses import replace
+
+    from .register import Registration  # a registration of its own, the other way
+
+    o = reg.options
+    log.info("two-way: registering the target onto the source")
+    grid = o.grid if o.two_way_grid is None else o.two_way_grid
+    reverse = Registration((reg.target_vertices, reg.target_faces),
+                           (reg.source_vertices, reg.source_faces),
+                           o.replace(two_way=False, grid=grid, source_sign=reg.asked_sign))
+    shown = None if progress is None else (  # "[reverse: rest (coarse)] ..." and so on
+        lambda e: progress(replace(e, start=f"reverse: {e.start}" if e.start else "reverse")))
+    back = reverse.run(progress=shown)
+    # the reverse result lies on the source's surface, in the source's original frame
+    Yd = reg.normalization.apply(back.vertices)
+    P = reverse_correspondences(reg.X0, Yd, reg.target_faces, reg.Y)
+    S = closest_point_rows(reg.X0, reg.source_sdf_faces, Yd)
+    both = sp.vstack([sp.identity(reg.X0.shape[0], format="csr"), S], format="csr")
+    fits = {"reverse": reg.basis.fit(P, o.modes),
+            "reverse, both sides": reg.basis.fit(np.vstack([P, reg.Y]), o.modes, rows=both)}
+    options = o.replace(initial_modes=o.modes, lm_final_iterations=o.two_way_iterations)
+    runs = reg.runner.run([(label, T, options) for label, T in fits.items()], progress)
+    objectives = {"forward": reg.runner.full_grid_objective(forward), **{r.label: r.energy for r in runs}}
+    finite = {k: e for k, e in objectives.items() if np.isfinite(e)}
+    kept = min(finite, key=finite.get) if finite else "forward"
+    log.info("two-way: objective %s: kept the %s result",
+             ", ".join(f"{k} {e:.4g}" for k, e in objectives.items()), kept)
+    report = {"kept": kept, "objectives": objectives,
+              "reverse_registration_start": back.metrics["start"],
+              "reverse_registration_evaluations": back.evaluations,
+              "reverse_registration_seconds": float(sum(v for k, v in back.timings.items()
+                                                        if k != "sdf_queries"))}
+    return back, runs, report

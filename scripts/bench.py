@@ -234,7 +234,7 @@ def targets(results: dict) -> dict:
     return out
 
 
-def _target_line(pair: str, t: dict, results: dict, overrides: dict | None = None) -> str | None:
+def target_line(pair: str, t: dict, results: dict, overrides: dict | None = None) -> str | None:
     parts = []
     ours, paper = results.get("ours, default"), results.get("ours, --optimizer paper")
     if "wall_time" in t:
@@ -256,13 +256,13 @@ def _target_line(pair: str, t: dict, results: dict, overrides: dict | None = Non
     return f"- issue-6 targets, {pair}: " + "; ".join(parts) if parts else None
 
 
-def _add_targets(report: dict, pair: str, results: dict, lines: list[str]) -> None:
+def add_targets(report: dict, pair: str, results: dict, lines: list[str]) -> None:
     """One pair's :func:`targets`, into ``report["targets"]`` and, as a line, onto ``lines``
     (nothing when no target's methods ran)."""
     t = targets(results)
     if t:
         report.setdefault("targets", {})[pair] = t
-        line = _target_line(pair, t, results, report.get("overrides"))
+        line = target_line(pair, t, results, report.get("overrides"))
         if line is not None:
             lines.append(line)
 
@@ -280,7 +280,7 @@ def _targets_only(out: Path) -> int:
         by_pair.setdefault(r["pair"], {})[r["method"]] = r
     report["targets"], target_lines = {}, []
     for pair, results in by_pair.items():
-        _add_targets(report, pair, results, target_lines)
+        add_targets(report, pair, results, target_lines)
     print("\n".join(target_lines) if target_lines else "no pair ran the methods a target compares")
     path.write_text(json.dumps(report, indent=2, default=str))
     md = out / "bench.md"
@@ -360,7 +360,7 @@ def main() -> int:
             lines.append(line)
             print(line, flush=True)
             report["results"].append({"pair": name, "method": method, **r})
-        _add_targets(report, name, results, target_lines)
+        add_targets(report, name, results, target_lines)
     if target_lines:
         print("\n" + "\n".join(target_lines), flush=True)
         lines += [""] + target_lines

@@ -50,11 +50,11 @@ def test_targets_whose_methods_did_not_run_are_left_out(bench):
     no_nricp = {k: v for k, v in full.items() if k != "trimesh nricp_amberg"}
     assert set(bench.targets(no_nricp)) == {"evaluations"}
     assert bench.targets({"trimesh nricp_amberg": full["trimesh nricp_amberg"]}) == {}
-    line = bench._target_line("p", bench.targets(full), full)
+    line = bench.target_line("p", bench.targets(full), full)
     assert line.startswith("- issue-6 targets, p: wall time 0.24x") and line.count("**met**") == 2
-    assert bench._target_line("p", {}, {}) is None
+    assert bench.target_line("p", {}, {}) is None
     # with options set, the line says the run is not of the default settings
-    assert bench._target_line("p", bench.targets(full), full, {"grid": 48}).endswith(
+    assert bench.target_line("p", bench.targets(full), full, {"grid": 48}).endswith(
         "; ours ran with --set grid=48, not the default settings")
 
 
@@ -66,18 +66,18 @@ def test_the_other_settings_ratios_are_reported_not_judged(bench):
     t = bench.targets(full)
     assert t["settings"] == {"--fastest": {"ratio": pytest.approx(0.5), "error": 0.0109}}
     assert not t["wall_time"]["met"] and t["wall_time"]["ratio"] == pytest.approx(25.4 / 8.5)
-    line = bench._target_line("p", t, full)
+    line = bench.target_line("p", t, full)
     assert line.endswith("; the other settings: --fastest 0.50x at error 0.0109")
     no_nricp = {k: v for k, v in full.items() if k != "trimesh nricp_amberg"}
     assert "settings" not in bench.targets(no_nricp)
     # a run of the other settings without the default still gets its line
     alone = {k: full[k] for k in ("trimesh nricp_amberg", "ours, --fastest")}
     assert set(bench.targets(alone)) == {"settings"}
-    assert bench._target_line("p", bench.targets(alone), alone) == (
+    assert bench.target_line("p", bench.targets(alone), alone) == (
         "- issue-6 targets, p: the default did not run; the other settings: --fastest 0.50x at error 0.0109")
     lines = []
-    bench._add_targets({}, "p", alone, lines)
-    assert lines == [bench._target_line("p", bench.targets(alone), alone)]
+    bench.add_targets({}, "p", alone, lines)
+    assert lines == [bench.target_line("p", bench.targets(alone), alone)]
 
 
 def test_targets_only_reads_a_saved_run(bench, tmp_path, monkeypatch, capsys):

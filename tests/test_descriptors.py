@@ -152,7 +152,7 @@ def test_a_descriptor_hop_follows_the_plain_hops():
     assert last["accepted"] == (last["objective"] < before)
     assert w["kept"] == (last["start"] if last["accepted"] else last["from"]) == r.metrics["start"]
     objective = last["objective"] if last["accepted"] else before
-    assert reg._objective(reg.normalization.apply(r.vertices)) == pytest.approx(objective, rel=1e-9)
+    assert reg.objective(reg.normalization.apply(r.vertices)) == pytest.approx(objective, rel=1e-9)
     assert r.metrics["starts"][-1]["start"] == last["start"]
     assert w["descriptors"]["channels"] == 4 and w["descriptors"]["grid_nodes"] > 0 and w["field_evaluations"] > 0
     assert r.metrics["ground_truth_error"] < 0.2 * r.metrics["identity_error"]

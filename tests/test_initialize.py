@@ -6,8 +6,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import morphmodes_vol as mm
-from morphmodes_vol.initialize import (RigidSourceField, _evaluate, _motion_metric, _rigid_jacobian,
-                                       _rodrigues, _Similarity, align, candidate_rotations,
+from morphmodes_vol.initialize import (RigidSourceField, evaluate, motion_metric, rigid_jacobian,
+                                       rodrigues, Similarity, align, candidate_rotations,
                                        icp_align, rotation_angle)
 from morphmodes_vol.primitives import bend, capsule
 from morphmodes_vol.sdf import Grid, signed_distance
@@ -41,9 +41,9 @@ def test_candidate_rotations_are_the_24_cube_rotations_then_principal_frames():
 
 def test_rodrigues_and_rotation_angle_match_scipy():
     w = np.array([0.3, -1.1, 0.4])
-    assert np.allclose(_rodrigues(w), Rotation.from_rotvec(w).as_matrix())
-    assert np.isclose(rotation_angle(_rodrigues(w)), np.degrees(np.linalg.norm(w)))
-    assert np.allclose(_rodrigues(np.zeros(3)), np.eye(3))
+    assert np.allclose(rodrigues(w), Rotation.from_rotvec(w).as_matrix())
+    assert np.isclose(rotation_angle(rodrigues(w)), np.degrees(np.linalg.norm(w)))
+    assert np.allclose(rodrigues(np.zeros(3)), np.eye(3))
 
 
 def test_motion_metric_is_the_mean_squared_vertex_displacement():
@@ -52,8 +52,8 @@ def test_motion_metric_is_the_mean_squared_vertex_displacement():
     p = rng.standard_normal(7)
     w, t, s = p[:3], p[3:6], p[6]
     dx = np.cross(w, x - c) + s * (x - c) + t
-    assert np.isclose(p @ _motion_metric(x, c, True) @ p, np.mean(np.sum(dx**2, axis=1)))
-    assert np.isclose(p[:6] @ _motion_metric(x, c, False) @ p[:6],
+    assert np.isclose(p @ motion_metric(x, c, True) @ p, np.mean(np.sum(dx**2, axis=1)))
+    assert np.isclose(p[:6] @ motion_metric(x, c, False) @ p[:6],
                       np.mean(np.sum((dx - s * (x - c)) ** 2, axis=1)))
 
 
@@ -62,12 +62,12 @@ def test_rigid_source_field_is_the_moved_sources_signed_distance():
     box = Grid.covering(X.min(0), X.max(0), 40, padding=0.6)
     field = RigidSourceField.from_mesh(X, F, box)
     assert field.nodes == box.size
-    S = _Similarity(_rodrigues(np.array([0.3, -0.5, 0.8])), np.array([0.1, 0.0, -0.05]), 1.1)
+    S = Similarity(rodrigues(np.array([0.3, -0.5, 0.8])), np.array([0.1, 0.0, -0.05]), 1.1)
     Y = S.apply(X)
     rng = np.random.default_rng(2)
     Q = Y.mean(0) + 0.5 * rng.standard_normal((400, 3)) * np.ptp(Y, 0)
     exact = signed_distance(Y, F, Q)
-    ev = _evaluate(field, S, Q, np.zeros(len(Q)), np.ones(len(Q)))
+    ev = evaluate(field, S, Q, np.zeros(len(Q)), np.ones(len(Q)))
     P = (Q - S.t) @ S.R / S.scale  # the points in the source's rest frame
     hi = box.origin + box.spacing * (np.asarray(box.shape) - 1)
     near = np.all((P > box.origin + box.spacing) & (P < hi - box.spacing), axis=1)
@@ -78,7 +78,7 @@ def test_rigid_source_field_is_the_moved_sources_signed_distance():
     assert np.median(cos) > 0.99
     assert np.allclose(ev.residual, ev.value) and np.isclose(ev.energy, ev.value @ ev.value)
     # outside the box the value grows with the distance to it
-    far = _evaluate(field, _Similarity(np.eye(3), np.zeros(3)), np.array([[50.0, 0, 0]]),
+    far = evaluate(field, Similarity(np.eye(3), np.zeros(3)), np.array([[50.0, 0, 0]]),
                     np.zeros(1), np.ones(1))
     assert far.value[0] > 45.0
 
@@ -95,28 +95,28 @@ def test_rigid_jacobian_matches_finite_differences(similarity):
     Q = rng.uniform(-1, 1, (20, 3))
     g = rng.standard_normal(20)
     w8 = np.ones(20)
-    S = _Similarity(_rodrigues(np.array([0.2, 0.1, -0.3])), np.array([0.1, 0.2, 0.0]), 1.2)
+    S = Similarity(rodrigues(np.array([0.2, 0.1, -0.3])), np.array([0.1, 0.2, 0.0]), 1.2)
     c = np.array([0.1, -0.2, 0.3])
-    ev = _evaluate(field, S, Q, g, w8)
-    J = _rigid_jacobian(ev, Q, c, similarity)
+    ev = evaluate(field, S, Q, g, w8)
+    J = rigid_jacobian(ev, Q, c, similarity)
     assert J.shape == (20, 7 if similarity else 6)
     eps = 1e-6
     for k in range(J.shape[1]):
         p = np.zeros(7)
         p[k] = eps
-        plus = _evaluate(field, S.compose(p[:3], p[3:6], p[6], c), Q, g, w8).residual
+        plus = evaluate(field, S.compose(p[:3], p[3:6], p[6], c), Q, g, w8).residual
         p[k] = -eps
-        minus = _evaluate(field, S.compose(p[:3], p[3:6], p[6], c), Q, g, w8).residual
+        minus = evaluate(field, S.compose(p[:3], p[3:6], p[6], c), Q, g, w8).residual
         assert np.allclose((plus - minus) / (2 * eps), J[:, k], atol=1e-6)
 
 
 def test_similarity_compose_applies_the_increment_exactly():
     rng = np.random.default_rng(1)
     X = rng.random((7, 3))
-    S = _Similarity(_rodrigues(np.array([0.1, 0.2, 0.3])), np.array([0.5, 0, 0]), 1.2)
+    S = Similarity(rodrigues(np.array([0.1, 0.2, 0.3])), np.array([0.5, 0, 0]), 1.2)
     w, t, s, c = np.array([0, 0.4, 0]), np.array([0, 0, 0.1]), 0.2, np.array([0.3, 0.3, 0.3])
     Y = S.apply(X)
-    expected = np.exp(s) * (Y - c) @ _rodrigues(w).T + c + t
+    expected = np.exp(s) * (Y - c) @ rodrigues(w).T + c + t
     assert np.allclose(S.compose(w, t, s, c).apply(X), expected)
 
 
@@ -199,7 +199,7 @@ def test_initialization_options_are_checked():
     assert not p.coarse_starts
 
 
-def test_cli_init_flag_reaches_the_options_and_the_report(tmp_path, capsys):
+def test_cli_initialization_setting_reaches_the_options_and_the_report(tmp_path, capsys):
     import json
 
     import trimesh
@@ -212,7 +212,7 @@ def test_cli_init_flag_reaches_the_options_and_the_report(tmp_path, capsys):
     trimesh.Trimesh(X, F, process=False).export(src)
     trimesh.Trimesh(Y, F, process=False).export(tgt)
     code = main(["register", str(src), str(tgt), "-o", str(tmp_path / "out"), "--grid", "16",
-                 "--modes", "2", "--init", "rigid", "-q"])
+                 "--modes", "2", "--set", "initialization=rigid", "-q"])
     assert code == 0
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert report["options"]["initialization"] == "rigid"
@@ -223,14 +223,14 @@ def test_cli_init_flag_reaches_the_options_and_the_report(tmp_path, capsys):
 
 
 def test_select_start_prefers_the_least_distorted_of_the_runs_that_fit():
-    from morphmodes_vol.register import _select_start, _StartRun
+    from morphmodes_vol.runs import StartRun, select_start
 
-    a = _StartRun("rest", None, 0.0, energy=1e-6, strain=0.5)
-    b = _StartRun("aligned", None, 0.0, energy=6e-6, strain=0.3)
-    assert _select_start([a, b], 10.0) is b           # fits within 10x: the less stretched wins
-    assert _select_start([a, b], 5.0) is a            # fits 6x worse: not eligible
-    c = _StartRun("aligned", None, 0.0, energy=float("nan"), strain=0.0)
-    assert _select_start([a, c], 10.0) is a           # a non-finite energy is never chosen
+    a = StartRun("rest", None, 0.0, energy=1e-6, strain=0.5)
+    b = StartRun("aligned", None, 0.0, energy=6e-6, strain=0.3)
+    assert select_start([a, b], 10.0) is b           # fits within 10x: the less stretched wins
+    assert select_start([a, b], 5.0) is a            # fits 6x worse: not eligible
+    c = StartRun("aligned", None, 0.0, energy=float("nan"), strain=0.0)
+    assert select_start([a, c], 10.0) is a           # a non-finite energy is never chosen
 
 
 def test_two_starts_are_run_and_reported():
@@ -257,8 +257,8 @@ def test_source_field_resolution_is_capped_and_still_covers_the_box(monkeypatch)
 
     X, F = asymmetric_blob()
     Q = np.random.default_rng(4).uniform(-1, 1, (50, 3))
-    monkeypatch.setattr(init, "_FIELD_MAX_RESOLUTION", 20)
-    field = init._source_field(X, F, Q, 0.01, X.mean(0), np.zeros(3), 1.0, "raycast")
+    monkeypatch.setattr(init, "FIELD_MAX_RESOLUTION", 20)
+    field = init.source_field(X, F, Q, 0.01, X.mean(0), np.zeros(3), 1.0, "raycast")
     assert max(field.grid.shape) == 20
     hi = field.grid.origin + field.grid.spacing * (np.asarray(field.grid.shape) - 1)
     assert np.all(field.grid.origin <= Q.min(0)) and np.all(hi >= Q.max(0))
@@ -276,7 +276,7 @@ def test_source_field_queries_only_the_nodes_the_alignment_samples():
     Y = X @ R.T + [0.4, -0.1, 0.2]
     grid, Q = _pair_grid(X, Y, res=20)
     cs, ct = X.mean(0), Y.mean(0)
-    field = init._source_field(X, F, Q, grid.spacing, cs, ct, 1.0, "raycast")
+    field = init.source_field(X, F, Q, grid.spacing, cs, ct, 1.0, "raycast")
     full = RigidSourceField.from_mesh(X, F, field.grid)
     assert full.nodes == field.grid.size and field.nodes < 0.8 * field.grid.size
     for rot in candidate_rotations():  # every start about the centroids
@@ -337,41 +337,41 @@ def test_a_start_stops_early_when_merged_or_outstretched():
     when it does not fit."""
     from types import SimpleNamespace
 
-    from morphmodes_vol.register import _StartRun
+    from morphmodes_vol.runs import StartRun
 
     X, F = asymmetric_blob()
     reg = mm.Registration((X, F), (X, F), mm.RegistrationOptions(grid=16, modes=4))
     X0 = reg.X0
 
     def start(label, V):
-        return _StartRun(label, None, 0.0, float("nan"), float("nan"), run=SimpleNamespace(vertices=V, stage=4))
+        return StartRun(label, None, 0.0, float("nan"), float("nan"), run=SimpleNamespace(vertices=V, stage=4))
 
     stretched = X0 * [1.0, 1.0, 1.6]  # strain 0.3-0.4 on the blob's edges along z
     near = X0 + 1e-3                   # a translation: unstretched, 1.7e-3 from X0 (RMS)
     # merged: within start_merge_distance; the more stretched one stops
     a, b = start("rest", X0 * 1.001), start("aligned", near)
-    assert reg._redundant_start(a, b) is a and a.stopped == 4 and a.reason == "merged"
+    assert reg.runner.redundant(a, b) is a and a.stopped == 4 and a.reason == "merged"
     # outstretched: the fit (at the target) is rigid, the other stretched
     a, b = start("rest", stretched), start("aligned", near)
-    assert reg._redundant_start(a, b) is a and a.reason == "outstretched"
+    assert reg.runner.redundant(a, b) is a and a.reason == "outstretched"
     assert np.isfinite(a.energy) and b.stopped is None
     # guard: the unstretched run is far from the target (objective > 10x the stretched one's)
     far = X0 + [0.0, 0.0, 0.3]
     fit = start("rest", X0 + 0.05 * (stretched - X0))
-    assert reg._redundant_start(fit, start("aligned", far)) is None
+    assert reg.runner.redundant(fit, start("aligned", far)) is None
     # a ratio below start_strain_ratio (about 1.6 here), or the checks off
     mild = (start("rest", X0 * [1.0, 1.0, 1.1]), start("aligned", X0 * [1.0, 1.0, 1.06]))
-    assert reg._redundant_start(*mild) is None
+    assert reg.runner.redundant(*mild) is None
     reg.options = reg.options.replace(start_strain_ratio=float("inf"), start_merge_distance=0.0)
-    assert reg._redundant_start(start("rest", stretched), start("aligned", near)) is None
-    assert reg._redundant_start(start("rest", X0), start("aligned", X0.copy())) is None
+    assert reg.runner.redundant(start("rest", stretched), start("aligned", near)) is None
+    assert reg.runner.redundant(start("rest", X0), start("aligned", X0.copy())) is None
     # the choice at start_choice_modes: the least stretched run that fits is kept
     a, b = start("rest", stretched), start("aligned", near)
-    assert reg._choose_now([a, b]) is b and a.stopped == 4 and a.reason == "not chosen"
+    assert reg.runner.choose_now([a, b]) is b and a.stopped == 4 and a.reason == "not chosen"
     assert np.isfinite(a.energy) and np.isfinite(b.energy) and b.strain < a.strain
     # ... and the guard: an unstretched run far from the target is not kept
     a, b = start("rest", fit.run.vertices), start("aligned", far)
-    assert reg._choose_now([a, b]) is a and b.reason == "not chosen" and a.stopped is None
+    assert reg.runner.choose_now([a, b]) is a and b.reason == "not chosen" and a.stopped is None
 
 
 def test_the_choice_between_starts_made_early_is_the_final_choice_at_that_stage():
@@ -495,15 +495,15 @@ def test_the_coarse_pass_compares_running_starts_on_its_own_grid(monkeypatch):
     grid, idx = every_other_node(reg.quadrature)
     f = signed_distance(reg.X0, reg.source_sdf_faces, reg.Q[idx]).value
     expected = grid.cell_volume * np.sum((f - reg.g[idx]) ** 2)
-    assert reg._coarse_objective(reg.X0) == pytest.approx(expected, rel=1e-12)
+    assert reg.coarse_objective(reg.X0) == pytest.approx(expected, rel=1e-12)
 
     calls = []
-    fine, coarse_grid = reg._objective, reg._coarse_objective
-    monkeypatch.setattr(reg, "_objective", lambda V: (calls.append("fine"), fine(V))[1])
+    fine, coarse_grid = reg.objective, reg.coarse_objective
+    monkeypatch.setattr(reg, "objective", lambda V: (calls.append("fine"), fine(V))[1])
     coarse = lambda V: (calls.append("coarse"), coarse_grid(V))[1]  # noqa: E731
-    shifted = reg._start_coefficients(np.hstack([np.eye(3), [[0.02], [0.0], [0.0]]]))
+    shifted = reg.start_coefficients(np.hstack([np.eye(3), [[0.02], [0.0], [0.0]]]))
     starts = [("rest", None, reg.options), ("shifted", shifted, reg.options)]
-    runs = reg._run_starts(starts, None, reg.coarse_energy, coarse)
+    runs = reg.runner.run(starts, None, reg.coarse_energy, coarse)
     # both judged on the coarse grid after 2 modes (one is not chosen), the kept one on
     # the fine grid when it ends after 3
     assert calls == ["coarse", "coarse", "fine"]
@@ -514,7 +514,7 @@ def test_the_coarse_pass_compares_running_starts_on_its_own_grid(monkeypatch):
     # a registration: the two starts judged on the coarse grid after 2 modes, then the
     # coarse pass's kept run on the fine grid when it ends
     calls.clear()
-    monkeypatch.setattr(reg, "_coarse_objective", coarse)
+    monkeypatch.setattr(reg, "coarse_objective", coarse)
     starts = reg.run().metrics["starts"]
     assert calls == ["coarse"] * 2 + ["fine"]
     # the report says which grid each start's energy is on, and after how many modes
@@ -536,13 +536,13 @@ def test_the_coarse_pass_result_is_kept_by_the_rule_among_starts():
     labels = [s["start"] for s in out.metrics["starts"]]
     assert labels == ["rest (coarse)", "aligned (coarse)"]
     assert all(s["energy_grid"] == "fine" for s in out.metrics["starts"])
-    from morphmodes_vol.register import _select_start, _StartRun
+    from morphmodes_vol.runs import StartRun, select_start
 
-    kept = _select_start([_StartRun(s["start"], None, 0.0, s["energy"], s["edge_strain"])
+    kept = select_start([StartRun(s["start"], None, 0.0, s["energy"], s["edge_strain"])
                           for s in out.metrics["starts"]], opts.select_energy_factor)
     assert out.metrics["start"] == kept.label
     # judged on the grid itself, not on the coarse grid it ran on
-    assert kept.energy == pytest.approx(reg._objective(reg.normalization.apply(out.vertices)), rel=1e-9)
+    assert kept.energy == pytest.approx(reg.objective(reg.normalization.apply(out.vertices)), rel=1e-9)
     # a grid too coarse to halve: one pass
     small = mm.register((X, F), (Y, F), opts.replace(grid=40, initialization="none"))
     assert [s["start"] for s in small.metrics["starts"]] == ["rest"]
@@ -632,7 +632,7 @@ def test_a_lone_run_is_not_judged_on_the_full_grid():
     assert start["energy_grid"] == "own" and start["energy_after_modes"] == 3
     assert start["energy"] == r.metrics["final_energy"]
 
-    (judged,) = reg._run_starts([("rest", None, opts)], None)
+    (judged,) = reg.runner.run([("rest", None, opts)], None)
     np.testing.assert_array_equal(reg.normalization.undo(judged.result.vertices), r.vertices)
     assert judged.energy_grid == "fine"
-    assert judged.energy == pytest.approx(reg._objective(judged.result.vertices), rel=1e-12)
+    assert judged.energy == pytest.approx(reg.objective(judged.result.vertices), rel=1e-12)

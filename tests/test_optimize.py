@@ -60,19 +60,19 @@ def _two_blas_threads():
     as in a process that set no limit; then as it was."""
     from threadpoolctl import threadpool_info, threadpool_limits
 
-    from morphmodes_vol.blas import _release_blas_control
+    from morphmodes_vol.blas import release_blas_control
 
     if not any(i["user_api"] == "blas" for i in threadpool_info()):
         pytest.skip("no BLAS thread pool that threadpoolctl can see")
     limiter = threadpool_limits(limits=2, user_api="blas")
-    _release_blas_control()
+    release_blas_control()
     try:
         if _blas_threads() < 2:
             pytest.skip("this BLAS does not take two threads")
         yield
     finally:
         limiter.restore_original_limits()
-        _release_blas_control()
+        release_blas_control()
 
 
 def test_blas_limit_is_restored_when_two_threads_overlap():

@@ -9,7 +9,7 @@ pytest.importorskip("matplotlib")
 
 from morphmodes_vol.cli import main  # noqa: E402
 from morphmodes_vol.errors import OptionError  # noqa: E402
-from morphmodes_vol.render import Panel, _to_plot_frame, render_panels  # noqa: E402
+from morphmodes_vol.render import Panel, to_plot_frame, render_panels  # noqa: E402
 
 PNG = b"\x89PNG\r\n\x1a\n"
 
@@ -22,10 +22,10 @@ def png_size(path):
 
 def test_plot_frame_is_a_rotation_putting_up_last():
     V = np.array([[1.0, 2.0, 3.0]])
-    np.testing.assert_array_equal(_to_plot_frame(V, 1), [[3.0, 1.0, 2.0]])  # y up: (z, x, y)
-    np.testing.assert_array_equal(_to_plot_frame(V, 2), V)
+    np.testing.assert_array_equal(to_plot_frame(V, 1), [[3.0, 1.0, 2.0]])  # y up: (z, x, y)
+    np.testing.assert_array_equal(to_plot_frame(V, 2), V)
     for up in range(3):  # a cyclic permutation keeps handedness (det +1)
-        P = _to_plot_frame(np.eye(3), up)
+        P = to_plot_frame(np.eye(3), up)
         assert np.linalg.det(P) == pytest.approx(1.0)
 
 

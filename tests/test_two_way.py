@@ -91,10 +91,10 @@ def test_two_way_keeps_the_lower_objective_and_counts_the_reverse_registration()
     assert list(objectives) == ["forward", "reverse", "reverse, both sides"]
     # the forward part is the registration without two_way, judged on the full grid
     assert objectives["forward"] == pytest.approx(
-        reg._objective(reg.normalization.apply(forward.vertices)), rel=1e-12)
+        reg.objective(reg.normalization.apply(forward.vertices)), rel=1e-12)
     # the lowest objective is kept, and it is the objective of the result
     assert t["kept"] == min(objectives, key=objectives.get)
-    assert reg._objective(reg.normalization.apply(r.vertices)) == pytest.approx(
+    assert reg.objective(reg.normalization.apply(r.vertices)) == pytest.approx(
         objectives[t["kept"]], rel=1e-9)
     if t["kept"] == "forward":
         np.testing.assert_allclose(r.vertices, forward.vertices, atol=1e-12)
@@ -121,7 +121,7 @@ def test_a_lone_forward_run_is_judged_on_the_full_grid_with_two_way():
     assert r.metrics["starts"][0]["energy_grid"] == "fine"
     forward = mm.register(source, target, options.replace(two_way=False))
     assert r.metrics["two_way"]["objectives"]["forward"] == pytest.approx(
-        reg._objective(reg.normalization.apply(forward.vertices)), rel=1e-12)
+        reg.objective(reg.normalization.apply(forward.vertices)), rel=1e-12)
 
 
 def test_two_way_options_and_targets_are_checked(tmp_path):
@@ -169,10 +169,10 @@ def test_two_way_with_landmarks_judges_by_the_objective_with_them():
     reg = mm.Registration(source, target, options, landmarks=landmarks)
     r = reg.run()
     t = r.metrics["two_way"]
-    assert reg._objective(reg.normalization.apply(r.vertices)) == pytest.approx(
+    assert reg.objective(reg.normalization.apply(r.vertices)) == pytest.approx(
         t["objectives"][t["kept"]], rel=1e-9)
     plain = mm.Registration(source, target, options)
-    assert plain._objective(reg.normalization.apply(r.vertices)) < t["objectives"][t["kept"]]
+    assert plain.objective(reg.normalization.apply(r.vertices)) < t["objectives"][t["kept"]]
     assert r.metrics["landmark_rms_fraction"] < 0.02
 
 

@@ -176,9 +176,9 @@ def test_warped_pass_keeps_the_lower_objective_and_counts_its_work():
     assert {"rest", "aligned"} < set(w["field_energies"])
     # the runs' part is the registration without the pass, judged on the full grid
     assert objectives[plain.metrics["start"]] == pytest.approx(
-        reg._objective(reg.normalization.apply(plain.vertices)), rel=1e-12)
+        reg.objective(reg.normalization.apply(plain.vertices)), rel=1e-12)
     _check_kept(w, plain.metrics["start"], options.warped_candidate_ratio)
-    assert reg._objective(reg.normalization.apply(r.vertices)) == pytest.approx(objectives[w["kept"]], rel=1e-9)
+    assert reg.objective(reg.normalization.apply(r.vertices)) == pytest.approx(objectives[w["kept"]], rel=1e-9)
     assert r.metrics["start"] == w["kept"] == w["kept_before_hops"] and w["hops"] == []
     runs = r.metrics["starts"]
     k = len(refined)
@@ -249,8 +249,8 @@ def test_a_failed_descriptor_is_logged_and_the_descriptor_hop_skipped(monkeypatc
     def fail(*args, **kwargs):
         raise ArpackError(-9999)
 
-    monkeypatch.setattr(sys.modules["morphmodes_vol.register"], "heat_kernel_signature", fail)
-    with caplog.at_level("WARNING", logger="morphmodes_vol.register"):
+    monkeypatch.setattr(sys.modules["morphmodes_vol.warped_pass"], "heat_kernel_signature", fail)
+    with caplog.at_level("WARNING", logger="morphmodes_vol.warped_pass"):
         failed = mm.register(source, target, options)
     w = failed.metrics["warped_pass"]
     assert w["descriptors"]["skipped"].startswith("no heat kernel signature: ARPACK error -9999")
@@ -276,11 +276,11 @@ def test_warped_candidates_and_the_choice_by_field_energy():
     assert set(energies) == {"rest", "aligned"} | (others - set(w["skipped_candidates"]))
     assert set(objectives) == set(energies) and len(energies) > 3
     # a skipped candidate maps the source within start_merge_distance of a start taken
-    taken = [np.zeros((1, 3, 4)), reg._start_coefficients(alignment.matrix)]
-    taken += [reg._start_coefficients(alignment.refined_matrices[int(k.split()[1])])
+    taken = [np.zeros((1, 3, 4)), reg.start_coefficients(alignment.matrix)]
+    taken += [reg.start_coefficients(alignment.refined_matrices[int(k.split()[1])])
               for k in energies if k.startswith("candidate")]
     for k in w["skipped_candidates"]:
-        X = reg.basis.deform(reg._start_coefficients(alignment.refined_matrices[int(k.split()[1])]))
+        X = reg.basis.deform(reg.start_coefficients(alignment.refined_matrices[int(k.split()[1])]))
         assert min(np.sqrt(np.mean(np.sum((X - reg.basis.deform(T)) ** 2, axis=1))) for T in taken) \
             < options.start_merge_distance
     assert w["refined_starts"][0] == min(objectives, key=objectives.get)
@@ -367,7 +367,7 @@ def test_hops_through_the_field_keep_only_a_lower_objective():
     assert len(hops) == 3 or not hops[-1]["accepted"]
     assert w["kept"] == kept == r.metrics["start"]
     # the kept result is the one of that objective, no higher than without hops
-    assert reg._objective(reg.normalization.apply(r.vertices)) == pytest.approx(objective, rel=1e-9)
+    assert reg.objective(reg.normalization.apply(r.vertices)) == pytest.approx(objective, rel=1e-9)
     assert objective <= w0["objectives"][w0["kept"]] * (1 + 1e-9)
     # a ratio of 1: kept at any lower objective (the bookkeeping as above, one hop)
     anyway = mm.register(source, target, options.replace(warped_hop_ratio=1.0)).metrics["warped_pass"]
@@ -402,8 +402,8 @@ def test_a_candidate_that_ties_with_a_start_is_not_kept():
 
 def test_field_results_are_ranked_with_nan_last():
     """A field result whose energy is NaN (or infinite) is never refined before a finite one."""
-    from morphmodes_vol.register import _ascending
-    assert _ascending({"a": 3.0, "b": np.nan, "c": 1.0, "d": np.inf, "e": 1.0}) == ["c", "e", "a", "b", "d"]
+    from morphmodes_vol.runs import ascending
+    assert ascending({"a": 3.0, "b": np.nan, "c": 1.0, "d": np.inf, "e": 1.0}) == ["c", "e", "a", "b", "d"]
 
 
 def test_warped_pass_options_are_checked_and_on_the_command_line():

@@ -64,8 +64,8 @@ class SparsePattern:
             raise ValueError(f"rows and cols must be two (p,) arrays, got {rows.shape} and {cols.shape}")
         if rows.size and (min(rows.min(), cols.min()) < 0 or max(rows.max(), cols.max()) >= n):
             raise ValueError(f"coordinates must lie in [0, {n})")
-        keys, self._slot = np.unique(rows * n + cols, return_inverse=True)
-        self._slot = self._slot.reshape(-1)
+        keys, self.slot = np.unique(rows * n + cols, return_inverse=True)
+        self.slot = self.slot.reshape(-1)
         self.n, self.nnz = int(n), keys.size
         self.indices = (keys % n).astype(np.int32)
         self.indptr = np.zeros(n + 1, dtype=np.int32)
@@ -74,7 +74,7 @@ class SparsePattern:
     def matrix(self, values: np.ndarray) -> sp.csr_matrix:
         """The ``(n, n)`` CSR matrix with ``values (p,)`` summed at their coordinates, in
         canonical form (sorted indices, no repeats)."""
-        data = np.bincount(self._slot, weights=values, minlength=self.nnz)
+        data = np.bincount(self.slot, weights=values, minlength=self.nnz)
         return self._with(data)
 
     def _with(self, data: np.ndarray) -> sp.csr_matrix:

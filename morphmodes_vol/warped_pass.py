@@ -1,0 +1,293 @@
+"""The warped pass (``warped_pass``): the warped rest field minimized from the starts and from
+other orientations, its best results refined on Eq. (3), and hops through the field's
+landscape (plain and with descriptor channels) from the kept result.
+
+docs/method.md, "The warped rest field", has the method; :mod:`morphmodes_vol.warped_field`
+the field itself.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy.sparse.linalg import ArpackError
+
+from .descriptors import heat_kernel_signature, surface_descriptor_grid
+from .errors import MeshValidationError
+from .runs import StartRun, ascending, rms
+from .sdf import Grid
+from .sdf.grid import trilinear_sample
+from .warped_field import WarpedRestField, ZeroEnergy
+
+if TYPE_CHECKING:
+    from .register import Registration
+
+__all__ = ["WARPED_PREFIX", "warped_pass", "warped_fields", "descriptor_channels", "descriptor_field"]
+
+log = logging.getLogger(__name__)
+
+WARPED_PREFIX = "warped: "
+"""Put before a start's name for the run refined from the warped rest field."""
+DESCRIPTOR_ERRORS = (MeshValidationError, ArpackError, np.linalg.LinAlgError)
+"""Why a descriptor field may not be built (logged, and the descriptor hop skipped)."""
+
+
+@dataclass(frozen=True)
+class DescriptorChannels:
+    """What :meth:`Registration._descriptor_channels` makes: the source's heat kernel
+    signatures ``source (n, c)``, the target's on the nodes of ``grid`` (``values``, as
+    :func:`~morphmodes_vol.descriptors.surface_descriptor_grid` returns them) and the seconds
+    spent."""
+
+    source: np.ndarray
+    values: np.ndarray
+    grid: Grid
+    seconds: float
+
+
+@dataclass(frozen=True)
+class WarpedFields:
+    """What :meth:`Registration._warped_fields` returns: the field, the candidates skipped,
+    every field run to ``prune_modes`` modes (``first``), those stopped there (``pruned``,
+    label -> field energy) and the finished runs (``results``); ``staged``: whether the runs
+    were stopped at ``prune_modes`` at all; ``descriptors``: the descriptor field made beside
+    them (``_descriptor_field``'s result or its error), else ``None``."""
+
+    field: WarpedRestField
+    skipped: list
+    first: dict
+    pruned: dict
+    results: dict
+    prune_modes: int
+    staged: bool
+    descriptors: tuple | Exception | None = None  # _descriptor_field's result, or its error
+
+
+def warped_fields(reg: "Registration", starts, candidates=(), descriptors=None) -> "WarpedFields":
+    """The warped pass's field runs (``warped_pass``; :meth:`_warped_pass`): the field
+    built once, minimized from every start and from ``candidates`` (``(label, T0)``;
+    one that maps the source within ``start_merge_distance`` of a start already taken is
+    skipped) to ``warped_prune_modes`` modes, then from those of field energy within
+    ``warped_prune_ratio`` of the lowest to the end; with ``descriptors`` (the future of
+    :meth:`_descriptor_channels_or_error`), also the descriptor field
+    (:meth:`_descriptor_field`, or the error that stopped it). No source query after the
+    field's one at the start, and nothing from the runs on Eq. (3): :meth:`run` lets it
+    go on beside them (``overlap_field``)."""
+    o = reg.options
+    h = reg.quadrature.spacing
+    field = WarpedRestField(reg.basis, reg.source_sdf_faces, reg.sample_target, h,
+                            o.warped_band_cells * h,
+                            terms=reg.with_terms(ZeroEnergy(reg.X0.shape[0])),
+                            sign=o.source_sign, samples=o.occupancy_samples,
+                            sample_weight=None if reg.confidence is None else reg.confidence.sample)
+    field_starts = [(label, np.zeros((1, 3, 4)) if T0 is None else T0) for label, T0, _ in starts]
+    skipped, placed = [], [reg.basis.deform(T) for _, T in field_starts]
+    for label, T0 in candidates:  # other orientations; one that repeats a start is skipped
+        X = reg.basis.deform(T0)
+        if any(rms(X - P) < o.start_merge_distance for P in placed):
+            skipped.append(label)
+        else:
+            field_starts.append((label, T0))
+            placed.append(X)
+    # every start to warped_prune_modes modes, then those of field energy within
+    # warped_prune_ratio of the lowest to the end
+    K = o.warped_prune_modes if 0 < o.warped_prune_modes < o.modes else o.modes
+    staged = K < o.modes
+    first = {label: field.minimize(T0, K, o.warped_iterations_per_stage) for label, T0 in field_starts}
+    finite = [r.energy for r in first.values() if np.isfinite(r.energy)]
+    pruned = {}
+    if staged and finite:
+        bar = o.warped_prune_ratio * min(finite)
+        pruned = {label: r.energy for label, r in first.items() if not r.energy <= bar}
+        if pruned:
+            log.info("warped rest field: %d of %d starts stopped after %d modes (field energy "
+                     "above %.3g)", len(pruned), len(first), K, bar)
+    results = {}
+    for label, begun in first.items():
+        if label not in pruned:
+            results[label] = begun if not staged else begun.then(field.minimize(
+                begun.T, o.modes, o.warped_iterations_per_stage, first_mode=K + 1,
+                start_damping=begun.damping))
+    made = None
+    if descriptors is not None:
+        made = descriptors.result()  # an error is raised again where the field is used
+        if not isinstance(made, Exception):
+            made = descriptor_field(reg, field, made)
+    return WarpedFields(field, skipped, first, pruned, results, K, staged, made)
+
+
+def warped_pass(reg: "Registration", starts, forward: "StartRun", progress, candidates=(),
+                fields: "WarpedFields | None" = None):
+    """``warped_pass`` (docs/method.md, "The warped rest field"): minimize the warped rest
+    field (:class:`~morphmodes_vol.warped_field.WarpedRestField`) from every start (and from
+    ``candidates``, ``(label, T0)`` pairs: the initialization stage's other orientations with
+    ``warped_candidates``; past ``warped_prune_modes`` modes only from those of field energy
+    within ``warped_prune_ratio`` of the lowest), refine the field result of lowest objective
+    and/or of lowest field energy (``warped_choice``) on Eq. (3) (one stage with all modes),
+    and compare with the ``forward`` run's result by the objective on the full grid
+    (``objectives`` and ``kept_before_hops`` in the report); then hop from the kept result
+    (:func:`_hops`). Returns the field, the refining runs, the report
+    (``metrics["warped_pass"]``) and the seconds spent on the field (building it and
+    minimizing it). ``fields``: the field runs made beside Algorithm 1's
+    (:func:`warped_fields`, ``overlap_field``), else made here."""
+    o = reg.options
+    if fields is None:
+        fields = warped_fields(reg, starts, candidates)
+    field, first, pruned, results = fields.field, fields.first, fields.pruned, fields.results
+    objectives = {}  # on Eq. (3): source queries, so here rather than in warped_fields
+    for label, run in results.items():
+        if o.warped_choice != "field":
+            objectives[label] = reg.objective(reg.basis.deform(run.T))
+        log.info("warped rest field from the %s start: %d evaluations, %d steps, %.2f s, "
+                 "field energy %.4g%s", label, run.evaluations, run.steps, run.seconds, run.energy,
+                 f", objective {objectives[label]:.4g}" if label in objectives else "")
+    energies = {label: r.energy for label, r in results.items()}
+    start_labels = [label for label, _, _ in starts]
+    chosen = _to_refine(o, objectives, energies, start_labels)
+    options = o.replace(initial_modes=o.modes, lm_final_iterations=o.warped_polish_iterations)
+    # a refined result is judged by the objective on the full grid when something is
+    # compared with it: the runs' result, another refined one, a hop (the hops below run
+    # as planned here, unless the objective is not finite or the descriptors fail)
+    descriptor_hop = o.warped_descriptors and reg.Y is not None  # an SDF target has no surface
+    judge = forward is not None or len(chosen) > 1 or o.warped_hops > 0 or descriptor_hop
+    runs = [reg.runner.run([(WARPED_PREFIX + label, results[label].T, options)], progress, judge=judge)[0]
+            for label in chosen]
+    ran = {} if forward is None else {forward.label: reg.runner.full_grid_objective(forward)}  # field_only: no runs
+    compared = {**ran, **{r.label: r.energy for r in runs}}
+    kept = _kept(o, ran, runs, chosen, start_labels)
+    best = next((r for r in runs if r.label == kept), min(
+        runs, key=lambda r: r.energy if np.isfinite(r.energy) else np.inf))
+    log.info("warped rest field: objective %s: kept the %s result",
+             ", ".join(f"{k} {e:.4g}" for k, e in compared.items()), kept)
+    current = best if forward is None or kept != forward.label else forward  # the result of label kept
+    current, hops, hop_fields, descriptors, descriptor_seconds = _hops(
+        reg, fields, current, compared[kept], options, descriptor_hop, progress, runs)
+    report = {"kept": current.label, "kept_before_hops": kept, "objectives": compared,
+              "field_objectives": objectives,
+              "field_energies": energies, "refined_start": best.label[len(WARPED_PREFIX):],
+              "refined_starts": chosen, "skipped_candidates": fields.skipped,
+              "pruned": pruned, "prune_modes": fields.prune_modes if fields.staged else None,
+              "field_energies_at_prune": {label: r.energy for label, r in first.items()} if fields.staged else {},
+              "field_nodes": int(len(field.points)), "hops": hops, "descriptors": descriptors}
+    spent = [*results.values(), *(first[label] for label in pruned), *hop_fields]  # every field run, whole
+    report["field_evaluations"] = int(sum(r.evaluations for r in spent))
+    seconds = float(field.build_seconds + sum(r.seconds for r in spent) + descriptor_seconds)
+    return field, runs, report, seconds
+
+
+def _to_refine(o, objectives: dict, energies: dict, start_labels: list) -> list:
+    """The field results refined on Eq. (3): the lowest ``warped_refine`` by each ranking
+    ``warped_choice`` asks for, in that order, once each; when a candidate (another
+    orientation) ranks first, the best start's result too."""
+    rankings = ([objectives] if o.warped_choice != "field" else []) + \
+               ([energies] if o.warped_choice != "objective" else [])
+    chosen = []
+    for values in rankings:
+        chosen += ascending(values)[:o.warped_refine]
+        if chosen[-1] not in start_labels:  # a candidate first: the best start's too
+            chosen += ascending({k: values[k] for k in start_labels if k in values})[:1]
+    return list(dict.fromkeys(chosen))
+
+
+def _kept(o, ran: dict, runs: list, chosen: list, start_labels: list) -> str:
+    """The label of the result kept among the runs' (``ran``) and the refined ones, by the
+    orientation prior, as the initialization's (``init_switch``): a result from another
+    orientation is kept only when its objective is below ``warped_candidate_ratio`` times
+    every result from the starts' (a shape with a symmetry ties across orientations)."""
+    own = {**ran, **{r.label: r.energy for r, label in zip(runs, chosen) if label in start_labels}}
+    other = {r.label: r.energy for r, label in zip(runs, chosen) if label not in start_labels}
+    kept = ascending(own)[0]  # the forward result first among ties; a NaN one last
+    if other:
+        best_other = ascending(other)[0]
+        bar = o.warped_candidate_ratio * own[kept]
+        if np.isfinite(other[best_other]) and not other[best_other] >= bar:
+            kept = best_other
+    return kept
+
+
+def _hops(reg: "Registration", fields: "WarpedFields", current: "StartRun", objective: float, options,
+          descriptor_hop: bool, progress, runs: list):
+    """Hops through the field's landscape from the kept result ``current`` (``warped_hops``):
+    the field's minimum near it with all modes, refined on Eq. (3), kept when its objective
+    is below ``warped_hop_ratio`` times the kept one's, the next hop from there; then, with
+    ``warped_descriptors``, one hop through the field with the heat kernel signatures as
+    channels. The hops' runs are appended to ``runs``. Returns the result kept, the hops'
+    reports, their field runs, the descriptors' report and the seconds spent on them."""
+    o = reg.options
+    hops, hop_fields, descriptors, descriptor_seconds = [], [], {}, 0.0
+    chains = [("hop", fields.field, o.warped_hops)]
+    if o.warped_descriptors and not descriptor_hop:
+        log.info("warped_descriptors: a target given as an SDF has no surface for descriptors")
+        descriptors = {"skipped": "the target is an SDF, not a mesh"}
+    elif descriptor_hop and np.isfinite(objective):
+        # docs/method.md, "Descriptors in the warped field"
+        try:
+            made = fields.descriptors
+            if isinstance(made, Exception):
+                raise made
+            dfield, grid_nodes, descriptor_seconds = made or descriptor_field(reg, fields.field)
+        except DESCRIPTOR_ERRORS as exc:
+            log.warning("warped_descriptors: no heat kernel signature (%s); no descriptor hop", exc)
+            descriptors = {"skipped": f"no heat kernel signature: {exc}"}
+        else:
+            descriptors = {"channels": int(dfield.d0.shape[1]), "grid_nodes": grid_nodes}
+            chains.append(("descriptor hop", dfield, 1))
+    for name, hop_field, count in chains:
+        for i in range(count if np.isfinite(objective) else 0):
+            moved = hop_field.minimize(current.result.T, o.modes, o.warped_hop_iterations, first_mode=o.modes)
+            hop_fields.append(moved)
+            run = reg.runner.run([(f"{WARPED_PREFIX}{name} {i + 1}", moved.T, options)], progress)[0]
+            runs.append(run)
+            accepted = bool(run.energy < o.warped_hop_ratio * objective)
+            hops.append({"start": run.label, "from": current.label, "field_energy": float(moved.energy),
+                         "objective": float(run.energy), "accepted": accepted,
+                         "field": "descriptors" if hop_field.d0 is not None else "plain"})
+            log.info("%s from the %s result: field energy %.4g, objective %.4g against %.4g: %s", run.label,
+                     current.label, moved.energy, run.energy, objective, "kept" if accepted else "not kept")
+            if not accepted:
+                break
+            current, objective = run, run.energy
+    return current, hops, hop_fields, descriptors, descriptor_seconds
+
+
+def descriptor_channels(reg: "Registration") -> "DescriptorChannels":
+    """The descriptor channels of the warped field (``warped_descriptors``; docs/method.md,
+    "Descriptors in the warped field"): the heat kernel signatures of the source and the
+    target mesh, the target's on a grid of half the quadrature's nodes over its box. They
+    depend on the two meshes alone: :meth:`run` makes them beside the initialization
+    (``overlap_field``)."""
+    o = reg.options
+    t = time.perf_counter()
+    source = heat_kernel_signature(reg.X0, reg.source_sdf_faces, seed=o.seed)
+    target = heat_kernel_signature(reg.Y, reg.target_sdf_faces, seed=o.seed)
+    grid = Grid.covering(reg.quadrature.origin, reg.quadrature.upper, max(max(reg.quadrature.shape) // 2, 2))
+    values = surface_descriptor_grid(reg.Y, reg.target_sdf_faces, target, grid)
+    return DescriptorChannels(source, values, grid, time.perf_counter() - t)
+
+
+def descriptor_channels_or_error(reg: "Registration") -> "DescriptorChannels | Exception":
+    """:meth:`_descriptor_channels`, or the error that stopped it (raised again where
+    the descriptor hop is made, which logs it and goes without)."""
+    try:
+        return descriptor_channels(reg)
+    except DESCRIPTOR_ERRORS as exc:
+        return exc
+
+
+def descriptor_field(reg: "Registration", field: WarpedRestField,
+                      channels: "DescriptorChannels | None" = None) -> tuple[WarpedRestField, int, float]:
+    """``field`` with the descriptor channels (``channels``, made by
+    :meth:`_descriptor_channels` when not given). Returns the field, the node count of
+    the target's descriptor grid and the seconds spent on both."""
+    c = descriptor_channels(reg) if channels is None else channels
+    t = time.perf_counter()
+    dfield = field.with_descriptors((c.source, lambda P: trilinear_sample(c.values, c.grid, P)),
+                                    reg.options.warped_descriptor_weight)
+    seconds = c.seconds + time.perf_counter() - t
+    log.info("descriptor field: heat kernel signatures and the target's grid of %d nodes (%.2f s)",
+             c.grid.size, seconds)
+    return dfield, int(c.grid.size), seconds
