@@ -22,33 +22,31 @@ __all__ = ["main"]
 
 
 class ProgressPrinter:
-    """Progress on stderr: one rewritten line on a terminal, a line every few seconds (and
-    at each new mode) otherwise."""
+    """Progress on stderr: one live line on a terminal (the run, its modes and energy),
+    rewritten in place; otherwise a line when a run starts and one every ``interval``
+    seconds. Details of each stage are logged under ``-v``."""
 
     def __init__(self, stream=None, interval: float = 5.0):
         self.stream = stream or sys.stderr
         self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
         self.interval = interval
         self._last = -1e9
-        self._modes = 0
+        self._seen: set = set()
         self._width = 0
 
     def __call__(self, e) -> None:
         now = time.perf_counter()
-        new_stage = (e.start, e.modes) != self._modes
-        self._modes = (e.start, e.modes)
-        step = "-" if e.step_rms != e.step_rms else f"{e.step_rms:.1e}"  # NaN at a stage start
-        line = (
-            (f"[{e.start}] " if e.start else "") +
-            f"modes {e.modes}/{e.max_modes}  iter {e.iteration}  energy {e.energy:.4e}  "
-            f"step {step} (stall {e.threshold:.1e})  evals {e.evaluations}  {e.elapsed:.1f}s"
-        )
+        new_run = e.start not in self._seen
+        self._seen.add(e.start)
+        line = ((f"[{e.start}] " if e.start else "") +
+                f"modes {e.modes}/{e.max_modes}  iter {e.iteration}  energy {e.energy:.4e}  "
+                f"evals {e.evaluations}  {e.elapsed:.1f}s")
         if self.tty:
             pad = max(self._width - len(line), 0)
             self.stream.write("\r" + line + " " * pad)
             self._width = len(line)
             self.stream.flush()
-        elif new_stage or now - self._last >= self.interval:
+        elif new_run or now - self._last >= self.interval:
             self.stream.write(line + "\n")
             self.stream.flush()
             self._last = now

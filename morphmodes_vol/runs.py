@@ -135,7 +135,7 @@ class StartRunner:
             if len(starts) > 1:
                 log.info("Algorithm 1 from start %s", label)
             evaluator = (energy or self.reg.energy)()
-            shown = progress if progress is None or len(starts) == 1 else labelled(progress, label)
+            shown = progress if progress is None else labelled(progress, label)
             live.append(StartRun(label, None, 0.0, float("nan"), float("nan"), energy_term=evaluator,
                                  objective=objective,
                                  run=AdaptiveRun(evaluator, self.reg.basis, options, shown, start)))

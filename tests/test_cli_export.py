@@ -147,9 +147,9 @@ def test_options_from_preset_config_and_set(tmp_path, capsys):
     assert "--preset" in "".join(flags) and len(flags) < 25
 
 
-def test_progress_lines_name_the_start_and_follow_each_start_to_a_new_mode():
-    """Off a terminal, a line at each new (start, mode) and otherwise every few seconds; the
-    two starts of a registration are labelled."""
+def test_progress_lines_name_each_run_once_and_then_every_few_seconds():
+    """Off a terminal, a line when a run starts and otherwise every few seconds (here never);
+    the runs are labelled."""
     import io
 
     from morphmodes_vol.cli import ProgressPrinter
@@ -168,7 +168,7 @@ def test_progress_lines_name_the_start_and_follow_each_start_to_a_new_mode():
         printer(e)
     lines = stream.getvalue().splitlines()
     assert [line[:20] for line in lines] == ["[rest] modes 1/3  it", "[aligned] modes 1/3 ",
-                                             "[rest] modes 2/3  it", "modes 2/3  iter 3  e"]
+                                             "modes 2/3  iter 3  e"]
 
 
 def _unwritable_folder(tmp_path):
