@@ -1,5 +1,5 @@
-"""Speed benchmark: ours (the default settings; ``--init none --no-coarse-starts``, one
-Levenberg-Marquardt run from the rest pose, the previous fast path; and ``--optimizer paper``, the paper-faithful
+"""Speed benchmark: ours (the default settings; one
+Levenberg-Marquardt run from the rest pose (``--methods lm``); and ``--preset paper``, the paper-faithful
 settings) against trimesh's non-rigid ICP (Amberg et al. 2007, ``trimesh.registration.nricp_amberg`` with its defaults),
 in one run, on the same machine; with ``--methods``, also the fast and fastest settings
 (``fast``, ``fastest``) and others.
@@ -102,7 +102,7 @@ def run_ours(source, target, truth, overrides: dict, preset: str = "default") ->
         # the objectives that compared runs, not in "evaluations"
         "comparison_evaluations": result.metrics.get("comparison_evaluations", 0),
         # points sent to the source's closest-point queries, over the grid's nodes: the cost
-        # in evaluations on the full grid (each of --optimizer paper's is one)
+        # in evaluations on the full grid (each of --preset paper's is one)
         "full_grid_equivalents": result.metrics.get("full_grid_equivalents"),
         "start": result.metrics.get("start", "rest"),
         "refreshes": len(h.refreshes),
@@ -194,7 +194,7 @@ def targets(results: dict) -> dict:
     Parameters
     ----------
     results : dict
-        Method label (``"ours, default"``, ``"ours, --optimizer paper"``, ``"trimesh
+        Method label (``"ours, default"``, ``"ours, --preset paper"``, ``"trimesh
         nricp_amberg"``) -> its result (``wall_s``, ``error``, ``full_grid_equivalents``).
 
     Returns
@@ -205,25 +205,25 @@ def targets(results: dict) -> dict:
         optimizer's (when that ran; the target asks both); ``"evaluations"``: the paper's
         full-grid equivalents over the default's (``factor``), ``met`` when at least
         :data:`EVALUATION_FACTOR` at no higher error. A target whose methods did not run is
-        left out. ``"settings"``: the same wall-time ratio for ``--fast`` and ``--fastest`` when
+        left out. ``"settings"``: the same wall-time ratio for ``--preset fast`` and ``--preset fastest`` when
         they ran (``ratio``, ``error``; not targets: the targets are of the defaults).
 
     Examples
     --------
     >>> t = targets({"ours, default": {"wall_s": 3.0, "error": 0.01, "full_grid_equivalents": 40.0},
     ...              "trimesh nricp_amberg": {"wall_s": 9.0, "error": 0.2},
-    ...              "ours, --optimizer paper": {"wall_s": 300.0, "error": 0.3, "full_grid_equivalents": 400.0}})
+    ...              "ours, --preset paper": {"wall_s": 300.0, "error": 0.3, "full_grid_equivalents": 400.0}})
     >>> t["wall_time"]["met"], t["evaluations"]["factor"], t["evaluations"]["met"]
     (True, 10.0, True)
     """
     ours, nricp = results.get("ours, default"), results.get("trimesh nricp_amberg")
-    paper = results.get("ours, --optimizer paper")
+    paper = results.get("ours, --preset paper")
     out = {}
     no_worse = paper is None or ours is None or ours["error"] <= paper["error"]
     if ours and nricp:
         ratio = ours["wall_s"] / nricp["wall_s"]
         out["wall_time"] = {"ratio": ratio, "target": TIME_RATIO, "met": bool(ratio <= TIME_RATIO and no_worse)}
-    others = {label: results[f"ours, {label}"] for label in ("--fast", "--fastest") if f"ours, {label}" in results}
+    others = {label: results[f"ours, {label}"] for label in ("--preset fast", "--preset fastest") if f"ours, {label}" in results}
     if nricp and others:
         out["settings"] = {label: {"ratio": r["wall_s"] / nricp["wall_s"], "error": r["error"]}
                            for label, r in others.items()}
@@ -236,7 +236,7 @@ def targets(results: dict) -> dict:
 
 def target_line(pair: str, t: dict, results: dict, overrides: dict | None = None) -> str | None:
     parts = []
-    ours, paper = results.get("ours, default"), results.get("ours, --optimizer paper")
+    ours, paper = results.get("ours, default"), results.get("ours, --preset paper")
     if "wall_time" in t:
         w = t["wall_time"]
         parts.append(f"wall time {w['ratio']:.2f}x NRICP's (at most {w['target']:.2f}x): "
@@ -307,12 +307,12 @@ def main() -> int:
     ap.add_argument("--methods", nargs="*", default=["default", "lm", "paper", "nricp"],
                     choices=["default", "fast", "fastest", "no-descriptors", "no-warped", "two-way", "lm",
                              "paper", "nricp"],
-                    help="default: RegistrationOptions(); fast: --fast, RegistrationOptions.fast(); "
-                         "fastest: --fastest, RegistrationOptions.fastest(); "
-                         "no-descriptors: --no-warped-descriptors, "
-                         "no-warped: --no-warped-pass and two-way: "
-                         "--two-way (not run unless named); lm: --init none --no-coarse-starts "
-                         "(one run from the rest pose); paper: RegistrationOptions.paper_faithful(); nricp: trimesh")
+                    help="default, fast, fastest, paper: the presets; no-descriptors, no-warped, two-way: "
+                         "the defaults with warped_descriptors=false, warped_pass=false, two_way=true (not "
+                         "run unless named); lm: one run from the rest pose (initialization=none, "
+                         "coarse_starts=false, warped_pass=false); nricp: trimesh")
+    ap.add_argument("--docs", action="store_true",
+                    help="also write the table to docs/benchmarks.md (the project's current benchmark)")
     ap.add_argument("--targets-only", action="store_true",
                     help="run nothing: read <out>/bench.json, print where each pair stands against the "
                          "issue-6 targets and add it to it and to <out>/bench.md")
@@ -335,24 +335,24 @@ def main() -> int:
         if "default" in args.methods:
             results["ours, default"] = _in_child(run_ours, source, target, target, overrides)
         if "fast" in args.methods:  # RegistrationOptions.fast()
-            results["ours, --fast"] = _in_child(run_ours, source, target, target, overrides, "fast")
+            results["ours, --preset fast"] = _in_child(run_ours, source, target, target, overrides, "fast")
         if "fastest" in args.methods:  # RegistrationOptions.fastest()
-            results["ours, --fastest"] = _in_child(run_ours, source, target, target, overrides, "fastest")
-        if "no-descriptors" in args.methods:  # the default until 2026-12-01 (s27)
-            results["ours, --no-warped-descriptors"] = _in_child(run_ours, source, target, target,
+            results["ours, --preset fastest"] = _in_child(run_ours, source, target, target, overrides, "fastest")
+        if "no-descriptors" in args.methods:
+            results["ours, --set warped_descriptors=false"] = _in_child(run_ours, source, target, target,
                                                                  {"warped_descriptors": False, **overrides})
-        if "no-warped" in args.methods:  # the default until 2026-11-30
-            results["ours, --no-warped-pass"] = _in_child(run_ours, source, target, target,
+        if "no-warped" in args.methods:
+            results["ours, --set warped_pass=false"] = _in_child(run_ours, source, target, target,
                                                           {"warped_pass": False, **overrides})
         if "two-way" in args.methods:
-            results["ours, --two-way"] = _in_child(run_ours, source, target, target,
+            results["ours, --set two_way=true"] = _in_child(run_ours, source, target, target,
                                                    {"two_way": True, **overrides})
         if "lm" in args.methods:  # the fast path before the initialization stage: one run
-            results["ours, --init none --no-coarse-starts --no-warped-pass"] = _in_child(
+            results["ours, one run from the rest pose"] = _in_child(
                 run_ours, source, target, target,
                 {"initialization": "none", "coarse_starts": False, "warped_pass": False, **overrides})
         if "paper" in args.methods:  # the paper-faithful settings
-            results["ours, --optimizer paper"] = _in_child(
+            results["ours, --preset paper"] = _in_child(
                 run_ours, source, target, target, overrides, "paper")
         nricp_wall = results.get("trimesh nricp_amberg", {}).get("wall_s")
         for method, r in results.items():
@@ -367,7 +367,21 @@ def main() -> int:
     (out / "bench.json").write_text(json.dumps(report, indent=2, default=str))
     (out / "bench.md").write_text("\n".join(lines) + "\n")
     print(f"wrote {out / 'bench.json'} and {out / 'bench.md'}")
+    if args.docs:
+        docs = ROOT / "docs" / "benchmarks.md"
+        docs.write_text(benchmarks_page(lines, sys.argv[1:], report["machine"]))
+        print(f"wrote {docs}")
     return 0
+
+
+def benchmarks_page(lines: list[str], argv: list[str], machine: dict) -> str:
+    """docs/benchmarks.md: the table of a run and the command and machine that made it."""
+    command = "python scripts/bench.py " + " ".join(a for a in argv if a != "--docs")
+    return (f"# Benchmark\n\nWritten by `{command.strip()} --docs` on "
+            f"{time.strftime('%Y-%m-%d')}, {machine['cpus']} CPUs, Python {machine['python']} "
+            f"({machine['platform']}). Every method runs in a child process of its own, one after "
+            "the other; wall time covers loading to written results. Compare ratios within a "
+            "table: NRICP's own time varies from machine to machine.\n\n" + "\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":

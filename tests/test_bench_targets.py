@@ -21,7 +21,7 @@ def bench():
 def _results(wall=25.4, error=0.0102, equivalents=45.6, nricp_wall=8.5, paper_error=0.281, paper_equivalents=637.0):
     return {"ours, default": {"wall_s": wall, "error": error, "full_grid_equivalents": equivalents},
             "trimesh nricp_amberg": {"wall_s": nricp_wall, "error": 0.238},
-            "ours, --optimizer paper": {"wall_s": 300.0, "error": paper_error,
+            "ours, --preset paper": {"wall_s": 300.0, "error": paper_error,
                                         "full_grid_equivalents": paper_equivalents}}
 
 
@@ -45,7 +45,7 @@ def test_a_higher_error_than_the_paper_meets_no_target(bench):
 def test_targets_whose_methods_did_not_run_are_left_out(bench):
     full = _results(wall=2.0)
     assert set(bench.targets(full)) == {"wall_time", "evaluations"}
-    no_paper = {k: v for k, v in full.items() if k != "ours, --optimizer paper"}
+    no_paper = {k: v for k, v in full.items() if k != "ours, --preset paper"}
     assert set(bench.targets(no_paper)) == {"wall_time"} and bench.targets(no_paper)["wall_time"]["met"]
     no_nricp = {k: v for k, v in full.items() if k != "trimesh nricp_amberg"}
     assert set(bench.targets(no_nricp)) == {"evaluations"}
@@ -59,22 +59,22 @@ def test_targets_whose_methods_did_not_run_are_left_out(bench):
 
 
 def test_the_other_settings_ratios_are_reported_not_judged(bench):
-    """``--fast`` and ``--fastest`` get the same wall-time ratio, for comparison, in
+    """``--preset fast`` and ``--preset fastest`` get the same wall-time ratio, for comparison, in
     ``"settings"`` and at the end of the line; the targets stay the default's."""
     full = _results()
-    full["ours, --fastest"] = {"wall_s": 4.25, "error": 0.0109, "full_grid_equivalents": 4.4}
+    full["ours, --preset fastest"] = {"wall_s": 4.25, "error": 0.0109, "full_grid_equivalents": 4.4}
     t = bench.targets(full)
-    assert t["settings"] == {"--fastest": {"ratio": pytest.approx(0.5), "error": 0.0109}}
+    assert t["settings"] == {"--preset fastest": {"ratio": pytest.approx(0.5), "error": 0.0109}}
     assert not t["wall_time"]["met"] and t["wall_time"]["ratio"] == pytest.approx(25.4 / 8.5)
     line = bench.target_line("p", t, full)
-    assert line.endswith("; the other settings: --fastest 0.50x at error 0.0109")
+    assert line.endswith("; the other settings: --preset fastest 0.50x at error 0.0109")
     no_nricp = {k: v for k, v in full.items() if k != "trimesh nricp_amberg"}
     assert "settings" not in bench.targets(no_nricp)
     # a run of the other settings without the default still gets its line
-    alone = {k: full[k] for k in ("trimesh nricp_amberg", "ours, --fastest")}
+    alone = {k: full[k] for k in ("trimesh nricp_amberg", "ours, --preset fastest")}
     assert set(bench.targets(alone)) == {"settings"}
     assert bench.target_line("p", bench.targets(alone), alone) == (
-        "- issue-6 targets, p: the default did not run; the other settings: --fastest 0.50x at error 0.0109")
+        "- issue-6 targets, p: the default did not run; the other settings: --preset fastest 0.50x at error 0.0109")
     lines = []
     bench.add_targets({}, "p", alone, lines)
     assert lines == [bench.target_line("p", bench.targets(alone), alone)]
