@@ -135,10 +135,6 @@ class SDFEnergy:
         """Fixed quadrature: nothing to refresh (see :class:`morphmodes_vol.quadrature.BandEnergy`)."""
         return False
 
-    def start_stage(self, m: int) -> None:
-        """One quadrature for every stage: nothing to do (see
-        :class:`morphmodes_vol.quadrature.CoarseToFine`)."""
-
     def evaluate(self, X: np.ndarray, known: "KnownQueries | None" = None) -> EnergyEvaluation:
         """Energy and vertex gradient at vertices ``X (n, 3)``.
 
@@ -207,7 +203,7 @@ class KnownQueries:
 
 class AddedTerm:
     """Base of a term added to an energy with the interface of :class:`SDFEnergy`
-    (``evaluate``, ``refresh``, ``start_stage``, ``F``, ``weights``, ``evaluations``,
+    (``evaluate``, ``refresh``, ``F``, ``weights``, ``evaluations``,
     ``seconds``), so the optimizers of :mod:`morphmodes_vol.optimize` see no difference.
 
     A subclass defines :meth:`term` (its value and vertex gradient) and
@@ -238,9 +234,6 @@ class AddedTerm:
 
     def refresh(self, X: np.ndarray, force: bool = False) -> bool:
         return self.inner.refresh(X, force)
-
-    def start_stage(self, m: int) -> None:
-        self.inner.start_stage(m)
 
     def term(self, X: np.ndarray) -> tuple[float, np.ndarray]:
         """The term's value and its vertex gradient ``(n, 3)`` at ``X (n, 3)``."""

@@ -34,7 +34,7 @@ from .energy import EnergyEvaluation, KnownQueries, SDFEnergy
 from .sdf.grid import Grid
 from .sdf.source import SignMethod, closest_points
 
-__all__ = ["GridBlocks", "BandEnergy", "CoarseToFine", "every_other_node"]
+__all__ = ["GridBlocks", "BandEnergy", "every_other_node"]
 
 log = logging.getLogger(__name__)
 
@@ -198,9 +198,6 @@ class BandEnergy:
                   int(fine.sum()), far.size, self.points.shape[0])
         return True
 
-    def start_stage(self, m: int) -> None:
-        """One grid for every stage (the band follows the source through :meth:`refresh`)."""
-
     def evaluate(self, X: np.ndarray) -> EnergyEvaluation:
         """Energy and vertex gradient at ``X (n, 3)`` on the current band quadrature.
 
@@ -257,54 +254,3 @@ def every_other_node(grid: Grid) -> tuple[Grid, np.ndarray]:
     coarse = Grid(origin=np.asarray(grid.origin, dtype=np.float64), spacing=2.0 * grid.spacing,
                   shape=tuple(len(a) for a in sub))
     return coarse, idx
-
-
-class CoarseToFine:
-    """Eq. (3) on a coarse quadrature while at most ``modes`` modes are active, then on the
-    fine one: a grid that refines across the stages of Algorithm 1.
-
-    The adaptive loop calls :meth:`start_stage` at every stage; at the switch the next
-    :meth:`refresh` reports a new quadrature, so the loop re-evaluates the current state on
-    the fine one before it compares energies (as after a band refresh).
-
-    Parameters
-    ----------
-    coarse, fine : SDFEnergy or BandEnergy
-        Evaluators of Eq. (3) on the two quadratures (same source faces).
-    modes : int
-        Last stage (number of active modes) evaluated on ``coarse``.
-    """
-
-    def __init__(self, coarse, fine, modes: int):
-        self.coarse, self.fine, self.modes = coarse, fine, int(modes)
-        self.current = coarse if self.modes > 0 else fine
-        self._switched = False
-
-    F = property(lambda self: self.current.F)
-    weights = property(lambda self: self.current.weights)
-    Q = property(lambda self: self.current.Q)
-    evaluations = property(lambda self: self.coarse.evaluations + self.fine.evaluations)
-    partial_evaluations = property(lambda self: sum(getattr(e, "partial_evaluations", 0)
-                                                    for e in (self.coarse, self.fine)))
-    seconds = property(lambda self: self.coarse.seconds + self.fine.seconds)
-    points_queried = property(lambda self: self.coarse.points_queried + self.fine.points_queried)
-    centres_queried = property(lambda self: sum(getattr(e, "centres_queried", 0)
-                                                for e in (self.coarse, self.fine)))
-
-    def start_stage(self, m: int) -> None:
-        """Stage ``m`` (active modes) begins: switch to the fine quadrature after ``modes``."""
-        if m > self.modes and self.current is self.coarse:
-            self.current = self.fine
-            self._switched = True
-            log.info("coarse-to-fine: stage %d onwards on the fine quadrature", m)
-
-    def refresh(self, X: np.ndarray, force: bool = False) -> bool:
-        """As :meth:`BandEnergy.refresh`; also ``True`` once right after the switch."""
-        if self._switched:
-            self._switched = False
-            self.current.refresh(X, force=True)
-            return True
-        return self.current.refresh(X, force)
-
-    def evaluate(self, X: np.ndarray) -> EnergyEvaluation:
-        return self.current.evaluate(X)

@@ -29,7 +29,7 @@ from .mesh import MeshLike, Normalization, as_mesh, joint_normalization
 from .metrics import ground_truth_error, shape_metrics
 from .optimize import OptimizationHistory, ProgressEvent
 from .options import RegistrationOptions
-from .quadrature import BandEnergy, CoarseToFine, every_other_node
+from .quadrature import BandEnergy, every_other_node
 from .repair import sdf_faces
 from .report import Outcome, correspondence, cost_metrics, landmark_metrics, result_metrics
 from .runs import StartRunner, comparison_counters
@@ -303,13 +303,7 @@ class Registration:
         """A fresh evaluator of the objective for this pair (its evaluation counter starts
         at 0): Eq. (3) on the quadrature ``options.quadrature`` selects, plus the isometry
         prior and the landmarks when on."""
-        o = self.options
-        sdf = self._quadrature_energy(self.quadrature, self.g, self.Q, c=self.c)
-        if o.coarse_modes > 0:
-            # a grid refining across stages: every other node (spacing 2h) for the first
-            # coarse_modes stages
-            sdf = CoarseToFine(self._coarse_sdf(), sdf, o.coarse_modes)
-        return self.with_terms(sdf)
+        return self.with_terms(self._quadrature_energy(self.quadrature, self.g, self.Q, c=self.c))
 
     def coarse_energy(self):
         """A fresh evaluator of the objective on every other node of the quadrature grid
@@ -391,7 +385,7 @@ class Registration:
 
     def runs_on_full_grid(self) -> bool:
         """Whether a run's own final energy is already the objective on the full grid."""
-        return self.options.quadrature == "full" and self.options.coarse_modes == 0
+        return self.options.quadrature == "full"
 
     def objective(self, X: np.ndarray) -> float:
         """The objective at the vertices ``X (n, 3)`` (normalized frame) with Eq. (3) on

@@ -126,8 +126,8 @@ def warped_pass(reg: "Registration", starts, forward: "StartRun", progress, cand
     field (:class:`~morphmodes_vol.warped_field.WarpedRestField`) from every start (and from
     ``candidates``, ``(label, T0)`` pairs: the initialization stage's other orientations with
     ``warped_candidates``; past ``warped_prune_modes`` modes only from those of field energy
-    within ``warped_prune_ratio`` of the lowest), refine the field result of lowest objective
-    and/or of lowest field energy (``warped_choice``) on Eq. (3) (one stage with all modes),
+    within ``warped_prune_ratio`` of the lowest), refine the field result of lowest field
+    energy on Eq. (3) (one stage with all modes),
     and compare with the ``forward`` run's result by the objective on the full grid
     (``objectives`` and ``kept_before_hops`` in the report); then hop from the kept result
     (:func:`_hops`). Returns the field, the refining runs, the report
@@ -138,16 +138,12 @@ def warped_pass(reg: "Registration", starts, forward: "StartRun", progress, cand
     if fields is None:
         fields = warped_fields(reg, starts, candidates)
     field, first, pruned, results = fields.field, fields.first, fields.pruned, fields.results
-    objectives = {}  # on Eq. (3): source queries, so here rather than in warped_fields
     for label, run in results.items():
-        if o.warped_choice != "field":
-            objectives[label] = reg.objective(reg.basis.deform(run.T))
         log.info("warped rest field from the %s start: %d evaluations, %d steps, %.2f s, "
-                 "field energy %.4g%s", label, run.evaluations, run.steps, run.seconds, run.energy,
-                 f", objective {objectives[label]:.4g}" if label in objectives else "")
+                 "field energy %.4g", label, run.evaluations, run.steps, run.seconds, run.energy)
     energies = {label: r.energy for label, r in results.items()}
     start_labels = [label for label, _, _ in starts]
-    chosen = _to_refine(o, objectives, energies, start_labels)
+    chosen = _to_refine(energies, start_labels)
     options = o.replace(initial_modes=o.modes, lm_final_iterations=o.warped_polish_iterations)
     # a refined result is judged by the objective on the full grid when something is
     # compared with it: the runs' result, another refined one, a hop (the hops below run
@@ -167,7 +163,6 @@ def warped_pass(reg: "Registration", starts, forward: "StartRun", progress, cand
     current, hops, hop_fields, descriptors, descriptor_seconds = _hops(
         reg, fields, current, compared[kept], options, descriptor_hop, progress, runs)
     report = {"kept": current.label, "kept_before_hops": kept, "objectives": compared,
-              "field_objectives": objectives,
               "field_energies": energies, "refined_start": best.label[len(WARPED_PREFIX):],
               "refined_starts": chosen, "skipped_candidates": fields.skipped,
               "pruned": pruned, "prune_modes": fields.prune_modes if fields.staged else None,
@@ -179,17 +174,12 @@ def warped_pass(reg: "Registration", starts, forward: "StartRun", progress, cand
     return field, runs, report, seconds
 
 
-def _to_refine(o, objectives: dict, energies: dict, start_labels: list) -> list:
-    """The field results refined on Eq. (3): the lowest ``warped_refine`` by each ranking
-    ``warped_choice`` asks for, in that order, once each; when a candidate (another
-    orientation) ranks first, the best start's result too."""
-    rankings = ([objectives] if o.warped_choice != "field" else []) + \
-               ([energies] if o.warped_choice != "objective" else [])
-    chosen = []
-    for values in rankings:
-        chosen += ascending(values)[:o.warped_refine]
-        if chosen[-1] not in start_labels:  # a candidate first: the best start's too
-            chosen += ascending({k: values[k] for k in start_labels if k in values})[:1]
+def _to_refine(energies: dict, start_labels: list) -> list:
+    """The field results refined on Eq. (3): the one of lowest field energy and, when that
+    came from a candidate (another orientation), the best start's too."""
+    chosen = ascending(energies)[:1]
+    if chosen[-1] not in start_labels:  # a candidate first: the best start's too
+        chosen += ascending({k: energies[k] for k in start_labels if k in energies})[:1]
     return list(dict.fromkeys(chosen))
 
 

@@ -64,8 +64,7 @@ OURS = ("ours", "fast", "fastest", "no-warped", "two-way")  # our settings compa
 
 #: options added with a default other than the earlier behaviour: a row stored before the
 #: option existed ran with this value
-CHANGED_DEFAULTS = {"warped_pass": False, "warped_candidates": False, "warped_choice": "objective",
-                    "warped_prune_modes": 0, "warped_hops": 0, "warped_descriptors": False}
+CHANGED_DEFAULTS = {"warped_pass": False, "warped_candidates": False, "warped_prune_modes": 0, "warped_hops": 0, "warped_descriptors": False}
 
 
 def same_config(stored: str | None, current: str) -> bool:

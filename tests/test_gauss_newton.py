@@ -12,7 +12,7 @@ from morphmodes_vol.eigenbasis import LBSBasis, skinning_eigenmodes, to_paper_z
 from morphmodes_vol.energy import SDFEnergy
 from morphmodes_vol.optimize.gauss_newton import lm_solve, subspace_metric, subspace_normal_equations
 from morphmodes_vol.primitives import affine, bend, capsule
-from morphmodes_vol.quadrature import BandEnergy, CoarseToFine, GridBlocks, every_other_node
+from morphmodes_vol.quadrature import BandEnergy, GridBlocks, every_other_node
 from morphmodes_vol.sdf import Grid, signed_distance
 from morphmodes_vol.register import ground_truth_error
 
@@ -220,7 +220,9 @@ def test_lm_registers_a_bend_with_few_evaluations():
     assert r.history.evaluations < 150
 
 
-def test_coarse_to_fine_switches_quadrature_after_its_stages(lumpy_sphere):
+def test_every_other_node_is_a_quadrature_of_the_same_integral(lumpy_sphere):
+    """The coarse pass's grid (``coarse_starts``): every other node, spacing ``2h``; Eq. (3)
+    on it approximates the same integral as on every node."""
     V, F = lumpy_sphere
     full, band, grid = _band_pair(V, F, V * 1.1)
     coarse_grid, idx = every_other_node(grid)
@@ -229,31 +231,7 @@ def test_coarse_to_fine_switches_quadrature_after_its_stages(lumpy_sphere):
     # the coarse grid's weights cover about the same box with an eighth of the nodes
     assert coarse.weights.sum() == pytest.approx(full.weights.sum(), rel=0.25)
     assert len(idx) < 0.2 * grid.size
-    sched = CoarseToFine(coarse, full, modes=2)
-    sched.start_stage(1)
-    assert sched.current is coarse and not sched.refresh(V)
-    e1 = sched.evaluate(V)
-    sched.start_stage(2)
-    assert sched.current is coarse
-    sched.start_stage(3)  # the switch: the next refresh reports a new quadrature, once
-    assert sched.current is full and sched.refresh(V) and not sched.refresh(V)
-    e3 = sched.evaluate(V)
-    assert sched.evaluations == 2 and sched.Q.shape[0] == grid.size
-    # Eq. (3) is a quadrature of the same integral on both grids
-    assert e3.energy == pytest.approx(e1.energy, rel=0.3)
-    assert CoarseToFine(coarse, full, modes=0).current is full
-
-
-def test_coarse_to_fine_registration_reaches_the_bend():
-    V, F = capsule(height=1.2, radius=0.25, count=(16, 16))
-    target = bend(V, np.radians(50.0))
-    identity = ground_truth_error(V, target)
-    r = mm.register((V, F), (target, F), grid=32, modes=6, optimizer="lm", quadrature="band",
-                    coarse_modes=3)
-    assert ground_truth_error(r.vertices, target) < identity / 3
-    assert r.history.evaluations < 150
-    with pytest.raises(mm.OptionError):
-        mm.RegistrationOptions(coarse_modes=-1)
+    assert coarse.evaluate(V).energy == pytest.approx(full.evaluate(V).energy, rel=0.3)
 
 
 def test_band_quadrature_reaches_the_full_grid_on_the_demo_pair():

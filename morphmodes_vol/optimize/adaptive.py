@@ -459,7 +459,6 @@ class AdaptiveRun:
             T = np.concatenate([T, np.zeros((1, 3, 4))])  # z <- [z; 0_12]
         eps = options.stall_threshold(self.stage)
         history.stage_starts.append(len(history.step_rms))
-        energy.start_stage(m)  # e.g. a coarse-to-fine quadrature switches grids here
         stepper.start_stage(m)
         end: StageEnd = "iteration_cap"
         self.T, self.current = T, current
