@@ -46,6 +46,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field as dataclass_field
+from functools import partial
 from itertools import permutations, product
 from typing import Callable
 
@@ -505,6 +506,54 @@ def source_field(X0: np.ndarray, F: np.ndarray, Q: np.ndarray, spacing: float, c
     return RigidSourceField.from_mesh(X0, F, grid, sign=sign, near=near)
 
 
+def _volume_frames(X0, F, Q, g, kind: str, sign: str):
+    """The volume centroids of source and target (from the coarse nodes inside each), the
+    candidate rotations between their principal axes and, for a similarity, the scale of
+    their volumes' ratio."""
+    inside_t = Q[g < 0]
+    inside_s = Q[inside(X0, F, Q, sign)]
+    if len(inside_t) < 4 or len(inside_s) < 4:
+        # a shape thinner than the coarse grid: fall back to its vertices' moments
+        log.info("coarse initialization grid sees fewer than 4 nodes inside a shape; "
+                 "using the source's vertices for its moments")
+        inside_s = X0 if len(inside_s) < 4 else inside_s
+        inside_t = inside_s if len(inside_t) < 4 else inside_t
+    cs, axes_s = _moments(inside_s)
+    ct, axes_t = _moments(inside_t)
+    scale = 1.0
+    if kind == "similarity" and len(inside_s) and len(inside_t):
+        scale = float(np.clip((len(inside_t) / len(inside_s)) ** (1.0 / 3.0), 0.5, 2.0))
+    return cs, ct, candidate_rotations(axes_s, axes_t), scale
+
+
+def _refine_candidates(refine, order: list, starts: list, evaluations: list, progress):
+    """Refine the starts ``order`` names (``refine(start, evaluation) -> (S, evaluation,
+    evaluations spent)``); returns their refined energies and similarities by index and the
+    evaluations spent."""
+    refined, finals, spent = {}, {}, 0
+    for rank_i, i in enumerate(order):
+        S, ev, n = refine(starts[i], evaluations[i])
+        spent += n
+        refined[i], finals[i] = float(ev.energy), S
+        if progress is not None:
+            progress(f"candidate {rank_i + 1}/{len(order)}: rotation {rotation_angle(S.R):.0f} deg, "
+                     f"energy {float(evaluations[i].energy):.3g} -> {ev.energy:.3g}")
+    return refined, finals, spent
+
+
+def _orientation_prior(order: list, refined: dict, switch: float) -> int:
+    """The refined start kept: the unrotated one (``order[0]``) unless another reaches an
+    energy lower by the factor ``switch`` (on articulated poses the SDF energy alone often
+    prefers a wrong orientation)."""
+    best_other = min(order[1:], key=lambda i: refined[i], default=None)
+    if best_other is None:
+        return order[0]
+    log.info("orientation prior: best rotated start %.4g, unrotated %.4g (ratio %.2f, switch "
+             "below %.2f)", refined[best_other], refined[order[0]],
+             refined[best_other] / max(refined[order[0]], 1e-300), switch)
+    return best_other if refined[best_other] < switch * refined[order[0]] else order[0]
+
+
 def align(
     X0: np.ndarray,
     F: np.ndarray,
@@ -561,20 +610,7 @@ def align(
     spacing = float(np.cbrt(float(np.max(weights)))) if np.max(weights) > 0 else 0.0
     if not spacing > 0:
         raise ValueError(f"weight must be positive (the coarse grid's cell volume), got {weight}")
-    inside_t = Q[g < 0]
-    inside_s = Q[inside(X0, F, Q, sign)]
-    if len(inside_t) < 4 or len(inside_s) < 4:
-        # a shape thinner than the coarse grid: fall back to its vertices' moments
-        log.info("coarse initialization grid sees fewer than 4 nodes inside a shape; "
-                 "using the source's vertices for its moments")
-        inside_s = X0 if len(inside_s) < 4 else inside_s
-        inside_t = inside_s if len(inside_t) < 4 else inside_t
-    cs, axes_s = _moments(inside_s)
-    ct, axes_t = _moments(inside_t)
-    rotations = candidate_rotations(axes_s, axes_t)
-    scale = 1.0
-    if kind == "similarity" and len(inside_s) and len(inside_t):
-        scale = float(np.clip((len(inside_t) / len(inside_s)) ** (1.0 / 3.0), 0.5, 2.0))
+    cs, ct, rotations, scale = _volume_frames(X0, F, Q, g, kind, sign)
     field = source_field(X0, F, Q, spacing, cs, ct, scale, sign)
     t_field = time.perf_counter() - t0
 
@@ -586,34 +622,15 @@ def align(
     screened = np.array([ev.energy for ev in evaluations])
     rest = evaluations[-1]
 
-    def rank(j: int) -> tuple:  # ascending energy, NaN last, ties by index (a stable sort)
-        e = screened[j]
-        return (bool(np.isnan(e)), 0.0 if np.isnan(e) else float(e), j)
-
-    # the unrotated start is always refined and the best screened others join it
-    order = [0] + sorted(range(1, len(starts)), key=rank)[: max(0, keep - 1)]
-
-    refined, finals = {}, {}
-    for rank_i, i in enumerate(order):
-        S, ev, n = _refine(field, Q, g, weights, X0, starts[i], evaluations[i], kind == "similarity",
-                           iterations)
-        spent += n
-        refined[i], finals[i] = float(ev.energy), S
-        if progress is not None:
-            progress(f"candidate {rank_i + 1}/{len(order)}: rotation {rotation_angle(S.R):.0f} deg, "
-                     f"energy {screened[i]:.3g} -> {ev.energy:.3g}")
-    # orientation prior: keep the unrotated start's alignment unless another start reaches
-    # an energy lower by the factor ``switch`` (docs/method.md: on articulated poses the SDF
-    # energy alone often prefers a wrong orientation)
-    best_other = min(order[1:], key=lambda i: refined[i], default=None)
-    best_i = 0
-    if best_other is not None and refined[best_other] < switch * refined[0]:
-        best_i = best_other
+    # the unrotated start is always refined and the best screened others join it (ascending
+    # energy, NaN last, ties by index)
+    order = [0] + sorted(range(1, len(starts)), key=lambda j: (
+        bool(np.isnan(screened[j])), 0.0 if np.isnan(screened[j]) else float(screened[j]), j))[: max(0, keep - 1)]
+    refine = partial(_refine, field, Q, g, weights, X0, similarity=kind == "similarity", iterations=iterations)
+    refined, finals, n = _refine_candidates(refine, order, starts, evaluations, progress)
+    spent += n
+    best_i = _orientation_prior(order, refined, switch)
     best = finals[best_i]
-    if best_other is not None:
-        log.info("orientation prior: best rotated start %.4g, unrotated %.4g (ratio %.2f, switch "
-                 "below %.2f)", refined[best_other], refined[0],
-                 refined[best_other] / max(refined[0], 1e-300), switch)
     result = InitialAlignment(
         matrix=best.matrix(), scale=float(best.scale), energy=refined[best_i],
         rest_energy=float(rest.energy), candidates=len(starts), chosen=best_i,

@@ -65,6 +65,24 @@ def to_plot_frame(V: np.ndarray, up: int) -> np.ndarray:
     return np.asarray(V, dtype=np.float64)[:, order]
 
 
+def _draw_panel(ax, panel: Panel, V: np.ndarray, color) -> None:
+    """One mesh ``V (n, 3)`` (plot frame) on a 3D axis: faces shaded by a headlight, colored by
+    ``color(values)`` (RGBA rows) of the panel's per-vertex values when it has them."""
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    F = np.asarray(panel.faces, dtype=np.int64)
+    tri = V[F]
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+    shade = 0.35 + 0.65 * np.abs(normal @ _LIGHT)
+    if panel.values is not None:
+        rgb = color(np.asarray(panel.values, dtype=np.float64)[F].mean(axis=1))[:, :3]
+    else:
+        rgb = np.broadcast_to(_BASE_RGB, (F.shape[0], 3))
+    colors = np.clip(rgb * shade[:, None], 0, 1)
+    ax.add_collection3d(Poly3DCollection(tri, facecolors=colors, edgecolors="none", linewidths=0))
+
+
 def render_panels(
     panels: list[Panel],
     path: str | os.PathLike,
@@ -121,10 +139,6 @@ def render_panels(
     ...     p.stat().st_size > 0
     True
     """
-    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
-
-    from .export import atomic_write_bytes
-
     if up not in UP_AXES:
         raise OptionError(f"up={up!r}: expected one of {sorted(UP_AXES)}")
     if not panels:
@@ -132,11 +146,10 @@ def render_panels(
     plt = _pyplot()
     import matplotlib as mpl
 
-    up_i = UP_AXES[up]
-    frames = [to_plot_frame(p.vertices, up_i) for p in panels]
+    frames = [to_plot_frame(p.vertices, UP_AXES[up]) for p in panels]
     lo = np.min([V.min(axis=0) for V in frames], axis=0)
     hi = np.max([V.max(axis=0) for V in frames], axis=0)
-    center, half = (lo + hi) / 2, (hi - lo).max() / 2
+    center, half = (lo + hi) / 2, (hi - lo).max() / 2  # one frame and scale for every panel
     valued = [p.values for p in panels if p.values is not None]
     if vmax is None and valued:
         vmax = max(float(np.percentile(v, 99)) for v in valued) or 1.0
@@ -152,17 +165,7 @@ def render_panels(
     fig.subplots_adjust(left=0, right=1, bottom=0.07 if suptitle else 0, top=1 - 0.3 / fig.get_figheight(), wspace=0, hspace=0.08)
     for k, (panel, V) in enumerate(zip(panels, frames)):
         ax = fig.add_subplot(nrow, ncol, k + 1, projection="3d")
-        F = np.asarray(panel.faces, dtype=np.int64)
-        tri = V[F]
-        normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
-        shade = 0.35 + 0.65 * np.abs(normal @ _LIGHT)
-        if panel.values is not None:
-            rgb = cmap(norm(np.asarray(panel.values, dtype=np.float64)[F].mean(axis=1)))[:, :3]
-        else:
-            rgb = np.broadcast_to(_BASE_RGB, (F.shape[0], 3))
-        colors = np.clip(rgb * shade[:, None], 0, 1)
-        ax.add_collection3d(Poly3DCollection(tri, facecolors=colors, edgecolors="none", linewidths=0))
+        _draw_panel(ax, panel, V, lambda v: cmap(norm(v)))
         ax.set_xlim(center[0] - half, center[0] + half)
         ax.set_ylim(center[1] - half, center[1] + half)
         ax.set_zlim(center[2] - half, center[2] + half)
@@ -176,7 +179,14 @@ def render_panels(
         fig.colorbar(mpl.cm.ScalarMappable(norm=norm, cmap=cmap), cax=cax, label=colorbar_label)
     if suptitle:
         fig.text(0.5, 0.01, suptitle, ha="center", va="bottom", fontsize=9)  # a caption
+    return _save_png(plt, fig, path, dpi)
+
+
+def _save_png(plt, fig, path, dpi: int) -> Path:
+    """``fig`` as a PNG at ``path``, written atomically; the figure closed."""
     import io
+
+    from .export import atomic_write_bytes
 
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=dpi)

@@ -91,28 +91,8 @@ def run_pair(spec: PairSpec, events: Any = None) -> dict:
     key = None
     try:
         _emit(events, spec.name, "load")
-        Vs, Fs = load_mesh(spec.source, min_vertices=4)
-        if is_point_cloud_file(spec.target):  # a scan: its Poisson surface (or its SDF) is the target
-            scanned = scan_target(spec.target, spec.options)
-            if not isinstance(scanned, tuple):
-                raise PipelineError(f"{spec.target}: a point-cloud target in a pipeline needs "
-                                    "point_sdf = 'poisson' (its surface is cached as a mesh's)")
-            Vt, Ft = scanned
-        else:
-            Vt, Ft = load_mesh(spec.target)
-        digests = {"source": mesh_digest(Vs, Fs), "target": mesh_digest(Vt, Ft)}
-        truth = None
-        if spec.ground_truth is not None:
-            if spec.ground_truth == spec.target and is_point_cloud_file(spec.target):
-                raise PipelineError(f"{spec.target}: a scan has no vertex order to be the ground truth; "
-                                    "give the intact mesh as ground_truth")
-            truth = Vt if spec.ground_truth == spec.target else load_mesh(spec.ground_truth)[0]
-            digests["ground_truth"] = mesh_digest(truth, np.zeros((0, 3)))
-        landmarks = None
-        if spec.landmarks is not None:
-            landmarks = load_landmarks(spec.landmarks, len(Vs))
-            digests["landmarks"] = mesh_digest(landmarks.points, landmarks.indices[:, None])
-        key = pair_key(spec, digests)
+        inputs = _load_inputs(spec)
+        key = pair_key(spec, inputs["digests"])
         if is_complete(spec, key):
             _emit(events, spec.name, "skipped (outputs complete)")
             return {"name": spec.name, "state": "skipped", "key": key, "seconds": 0.0}
@@ -120,54 +100,18 @@ def run_pair(spec: PairSpec, events: Any = None) -> dict:
         (spec.outdir / "report.json").unlink(missing_ok=True)  # stale outputs of another key
         for tmp in spec.outdir.glob(".*.tmp"):  # a write cut short by a killed run
             tmp.unlink(missing_ok=True)
-
-        opts = spec.options
-        cache = ProductCache(spec.cache_dir)
-        products = {}
-        t = time.perf_counter()
-        basis, hit = cache.get_or_build(
-            "eigenbasis", product_key("eigenbasis", [digests["source"]], {"modes": opts.modes, "seed": opts.seed}),
-            lambda: source_eigenbasis(Vs, Fs, opts.modes, opts.seed),
-            SourceEigenbasis.to_arrays, SourceEigenbasis.from_arrays,
-        )
-        products["eigenbasis"] = {"cached": hit, "seconds": time.perf_counter() - t}
-        t = time.perf_counter()
-        _emit(events, spec.name, _product_line("eigenbasis", products["eigenbasis"]))
-        if opts.target_backend == "dense":
-            field, hit = cache.get_or_build(
-                "target_sdf",
-                product_key("target_sdf", [digests["target"]],
-                            {"resolution": opts.resolved_target_grid, "padding": opts.padding,
-                             "sign": opts.target_sign}),
-                lambda: target_field(Vt, Ft, opts.resolved_target_grid, opts.padding, opts.target_sign),
-                TargetField.to_arrays, TargetField.from_arrays,
-            )
-        else:  # only dense fields are cached: Registration builds the vdb level set per pair
-            field, hit = None, False
-        products["target_sdf"] = {"cached": hit, "seconds": time.perf_counter() - t}
-        _emit(events, spec.name, _product_line("target SDF", products["target_sdf"]))
-
-        reg = Registration((Vs, Fs), (Vt, Ft), opts, eigenbasis=basis, target_sdf=field, landmarks=landmarks)
-        modes = [0]
-
-        def progress(e) -> None:
-            if e.modes != modes[0]:
-                modes[0] = e.modes
-                _emit(events, spec.name, f"optimize modes {e.modes}/{e.max_modes}")
-
-        result = reg.run(progress=progress, ground_truth=truth)
-        if not np.all(np.isfinite(result.vertices)):
-            raise FloatingPointError("the optimization diverged: non-finite registered vertices")
+        basis, field, products = _products(spec, inputs, events)
+        result = _register(spec, inputs, basis, field, events)
         _emit(events, spec.name, "export")
         seconds = time.perf_counter() - t0
-        inputs = {
+        meta = {
             "source": str(spec.source), "target": str(spec.target),
             "ground_truth": None if spec.ground_truth is None else str(spec.ground_truth),
             "landmarks": None if spec.landmarks is None else str(spec.landmarks),
             "pipeline": {"pair": spec.name, "key": key, "variant": spec.variant,
-                         "mesh_sha256": digests, "products": products, "seconds": seconds},
+                         "mesh_sha256": inputs["digests"], "products": products, "seconds": seconds},
         }
-        write_outputs(result, spec.outdir, inputs=inputs, mesh_format=spec.resolved_format)
+        write_outputs(result, spec.outdir, inputs=meta, mesh_format=spec.resolved_format)
         (spec.outdir / "failed.json").unlink(missing_ok=True)
         _emit(events, spec.name, f"done: {result.status}, {seconds:.1f}s")
         return {"name": spec.name, "state": "ok", "key": key, "seconds": seconds}
@@ -183,3 +127,79 @@ def run_pair(spec: PairSpec, events: Any = None) -> dict:
             log.warning("cannot write %s/failed.json", spec.outdir)
         _emit(events, spec.name, f"FAILED: {error}")
         return {"name": spec.name, "state": "failed", "key": key, "error": error, "seconds": seconds}
+
+
+def _load_inputs(spec: PairSpec) -> dict:
+    """The pair's meshes (a scan target as its Poisson surface), ground truth and landmarks,
+    and the content digests that key its outputs and cached products."""
+    Vs, Fs = load_mesh(spec.source, min_vertices=4)
+    if is_point_cloud_file(spec.target):  # a scan: its Poisson surface (or its SDF) is the target
+        scanned = scan_target(spec.target, spec.options)
+        if not isinstance(scanned, tuple):
+            raise PipelineError(f"{spec.target}: a point-cloud target in a pipeline needs "
+                                "point_sdf = 'poisson' (its surface is cached as a mesh's)")
+        Vt, Ft = scanned
+    else:
+        Vt, Ft = load_mesh(spec.target)
+    digests = {"source": mesh_digest(Vs, Fs), "target": mesh_digest(Vt, Ft)}
+    truth = None
+    if spec.ground_truth is not None:
+        if spec.ground_truth == spec.target and is_point_cloud_file(spec.target):
+            raise PipelineError(f"{spec.target}: a scan has no vertex order to be the ground truth; "
+                                "give the intact mesh as ground_truth")
+        truth = Vt if spec.ground_truth == spec.target else load_mesh(spec.ground_truth)[0]
+        digests["ground_truth"] = mesh_digest(truth, np.zeros((0, 3)))
+    landmarks = None
+    if spec.landmarks is not None:
+        landmarks = load_landmarks(spec.landmarks, len(Vs))
+        digests["landmarks"] = mesh_digest(landmarks.points, landmarks.indices[:, None])
+    return {"source": (Vs, Fs), "target": (Vt, Ft), "truth": truth, "landmarks": landmarks, "digests": digests}
+
+
+def _products(spec: PairSpec, inputs: dict, events) -> tuple:
+    """The source's eigenbasis and the target's dense SDF, from the cache or built (and
+    cached); with what each cost."""
+    opts, digests = spec.options, inputs["digests"]
+    (Vs, Fs), (Vt, Ft) = inputs["source"], inputs["target"]
+    cache = ProductCache(spec.cache_dir)
+    products = {}
+    t = time.perf_counter()
+    basis, hit = cache.get_or_build(
+        "eigenbasis", product_key("eigenbasis", [digests["source"]], {"modes": opts.modes, "seed": opts.seed}),
+        lambda: source_eigenbasis(Vs, Fs, opts.modes, opts.seed),
+        SourceEigenbasis.to_arrays, SourceEigenbasis.from_arrays,
+    )
+    products["eigenbasis"] = {"cached": hit, "seconds": time.perf_counter() - t}
+    t = time.perf_counter()
+    _emit(events, spec.name, _product_line("eigenbasis", products["eigenbasis"]))
+    if opts.target_backend == "dense":
+        field, hit = cache.get_or_build(
+            "target_sdf",
+            product_key("target_sdf", [digests["target"]],
+                        {"resolution": opts.resolved_target_grid, "padding": opts.padding,
+                         "sign": opts.target_sign}),
+            lambda: target_field(Vt, Ft, opts.resolved_target_grid, opts.padding, opts.target_sign),
+            TargetField.to_arrays, TargetField.from_arrays,
+        )
+    else:  # only dense fields are cached: Registration builds the vdb level set per pair
+        field, hit = None, False
+    products["target_sdf"] = {"cached": hit, "seconds": time.perf_counter() - t}
+    _emit(events, spec.name, _product_line("target SDF", products["target_sdf"]))
+    return basis, field, products
+
+
+def _register(spec: PairSpec, inputs: dict, basis, field, events):
+    """The registration of the pair, its progress as a line per new mode."""
+    reg = Registration(inputs["source"], inputs["target"], spec.options, eigenbasis=basis, target_sdf=field,
+                       landmarks=inputs["landmarks"])
+    modes = [0]
+
+    def progress(e) -> None:
+        if e.modes != modes[0]:
+            modes[0] = e.modes
+            _emit(events, spec.name, f"optimize modes {e.modes}/{e.max_modes}")
+
+    result = reg.run(progress=progress, ground_truth=inputs["truth"])
+    if not np.all(np.isfinite(result.vertices)):
+        raise FloatingPointError("the optimization diverged: non-finite registered vertices")
+    return result
