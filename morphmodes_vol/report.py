@@ -11,7 +11,7 @@ import numpy as np
 
 from .landmarks import landmark_rms
 from .mesh import bbox_diagonal
-from .runs import COARSE_SUFFIX, StartRun, points_queried
+from .runs import StartRun, points_queried
 from .sdf import closest_points
 
 if TYPE_CHECKING:
@@ -106,7 +106,7 @@ def cost_metrics(reg: "Registration", o: "Outcome", compared) -> dict:
                                    + rm.get("evaluations_all_starts", 0))
     # of which on the coarse pass's grid (coarse_starts), each a few times cheaper
     m["coarse_evaluations_all_starts"] = (sum(r.result.history.evaluations for r in runs
-                                              if r.label.endswith(COARSE_SUFFIX))
+                                              if r.coarse)
                                           + rm.get("coarse_evaluations_all_starts", 0))
     # of which after a band refresh, querying only the points new to the band
     m["partial_evaluations_all_starts"] = (sum(r.result.history.partial_evaluations for r in runs)

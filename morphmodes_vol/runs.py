@@ -53,6 +53,7 @@ class StartRun:
     objective: Callable[[np.ndarray], float] | None = None  # judged by while running (None: fine grid)
     points_queried: int = 0  # points its evaluator sent to the closest-point queries
     energy_grid: str | None = None  # where ``energy`` was computed: "fine", "coarse" (None: never)
+    coarse: bool = False  # run on the coarse pass's grid (every other node)
 
 
 def select_start(runs: list[StartRun], factor: float) -> StartRun:
@@ -256,6 +257,8 @@ class StartRunner:
             # refinements run on it (docs/decisions/0004)
             coarse = [(label + COARSE_SUFFIX, start, options) for label, start, options in starts]
             runs = self.run(coarse, progress, self.reg.coarse_energy, self.reg.coarse_objective)
+            for r in runs:
+                r.coarse = True
             chosen = select_start([r for r in runs if r.stopped is None], factor)
         else:
             # a lone run is not compared with anything (unless two_way compares it with the

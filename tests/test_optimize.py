@@ -185,3 +185,22 @@ def test_a_registration_does_not_depend_on_blas_threads():
         one = mm.register((X, F), (Y, F), options)
     assert one.evaluations == two.evaluations
     np.testing.assert_array_equal(one.vertices, two.vertices)
+
+
+def test_presets_are_data_shipped_with_the_package():
+    """Every preset is a TOML file of morphmodes_vol/presets with a description and an
+    [options] table of valid fields; ``from_table`` applies one, then changes it."""
+    from morphmodes_vol.options import PRESETS, preset_description, preset_table
+
+    assert set(PRESETS) == {"default", "fast", "fastest", "paper"}
+    for name in PRESETS:
+        assert preset_description(name)
+        table = preset_table(name)
+        assert RegistrationOptions.preset(name) == RegistrationOptions().replace(**table)
+        assert RegistrationOptions.from_table({"preset": name, "seed": 3}) == \
+            RegistrationOptions.preset(name).replace(seed=3)
+    assert preset_table("default") == {} and preset_table("fast")["quadrature"] == "band"
+    with pytest.raises(OptionError, match="preset 'turbo' is unknown"):
+        RegistrationOptions.preset("turbo")
+    with pytest.raises(OptionError, match="unknown option"):
+        RegistrationOptions.from_table({"preset": "fast", "gird": 3})

@@ -23,6 +23,18 @@ __all__ = ["mesh_skinning_weights"]
 log = logging.getLogger(__name__)
 
 
+def _weld(V: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """Clusters of vertices chained by pairs closer than ``tol`` (not cells of a lattice,
+    whose boundaries would part two copies of a vertex moved by a rounding error), each welded
+    to its lowest index: the kept vertices ``(k,)`` and each vertex's cluster ``(n,)``."""
+    n = V.shape[0]
+    pairs = cKDTree(V).query_pairs(tol, output_type="ndarray")
+    _, cluster = connected_components(sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])),
+                                                    shape=(n, n)), directed=False)
+    _, first, inverse = np.unique(cluster, return_index=True, return_inverse=True)
+    return first, inverse.ravel()
+
+
 def mesh_skinning_weights(V, F, modes: int, seed: int = 0, weld_tolerance: float = 1e-9
                           ) -> tuple[np.ndarray, np.ndarray]:
     """Skinning eigenmodes (Eq. 4) of ``(V, F)``, computed on a cleaned copy of the mesh and
@@ -69,16 +81,7 @@ def mesh_skinning_weights(V, F, modes: int, seed: int = 0, weld_tolerance: float
     """
     V, F = validate_mesh(V, F, "source")
     n = V.shape[0]
-    diag = max(bbox_diagonal(V), np.finfo(float).tiny)
-    tol = weld_tolerance * diag
-    # clusters of vertices chained by pairs closer than tol (not cells of a lattice, whose
-    # boundaries would part two copies of a vertex moved by a rounding error), each welded to
-    # its lowest index
-    pairs = cKDTree(V).query_pairs(tol, output_type="ndarray")
-    _, cluster = connected_components(sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])),
-                                                    shape=(n, n)), directed=False)
-    _, first, inverse = np.unique(cluster, return_index=True, return_inverse=True)
-    inverse = inverse.ravel()
+    first, inverse = _weld(V, weld_tolerance * max(bbox_diagonal(V), np.finfo(float).tiny))
     Vw = V[first]
     Fw = inverse[F]
     degenerate = degenerate_faces(Vw, Fw)
@@ -110,15 +113,8 @@ def mesh_skinning_weights(V, F, modes: int, seed: int = 0, weld_tolerance: float
     if missing.any():
         _, nearest = cKDTree(Vw[used]).query(V[missing])
         row[missing] = nearest
-    changes = {
-        "welded": int(n - Vw.shape[0]),
-        "degenerate_faces": int(degenerate.sum()),
-        "unreferenced": int(missing.sum()),
-    }
-    if any(changes.values()):
-        log.warning(
-            "source mesh cleaned for the eigenbasis: %d vertices welded, %d degenerate "
-            "triangles left out, %d vertices outside the eigenproblem (they follow their "
-            "nearest vertex)", changes["welded"], changes["degenerate_faces"], changes["unreferenced"],
-        )
+    if n > Vw.shape[0] or degenerate.any() or missing.any():
+        log.warning("source mesh cleaned for the eigenbasis: %d vertices welded, %d degenerate "
+                    "triangles left out, %d vertices outside the eigenproblem (they follow their "
+                    "nearest vertex)", n - Vw.shape[0], int(degenerate.sum()), int(missing.sum()))
     return Wc[row], lam
