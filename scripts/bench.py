@@ -376,7 +376,17 @@ def main() -> int:
 
 def benchmarks_page(lines: list[str], argv: list[str], machine: dict) -> str:
     """docs/benchmarks.md: the table of a run and the command and machine that made it."""
-    command = "python scripts/bench.py " + " ".join(a for a in argv if a != "--docs")
+    kept, skip = [], False
+    for a in argv:  # the command without --docs and the (machine's) output folder
+        if skip or a == "--docs":
+            skip = False
+            continue
+        if a == "--out":
+            skip = True
+            continue
+        if not a.startswith("--out="):
+            kept.append(a)
+    command = " ".join(["python scripts/bench.py", *kept])
     return (f"# Benchmark\n\nWritten by `{command.strip()} --docs` on "
             f"{time.strftime('%Y-%m-%d')}, {machine['cpus']} CPUs, Python {machine['python']} "
             f"({machine['platform']}). Every method runs in a child process of its own, one after "
