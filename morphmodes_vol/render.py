@@ -158,11 +158,7 @@ def render_panels(
 
     ncol = columns or len(panels)
     nrow = -(-len(panels) // ncol)
-    # whole pixels, a hair over, so that every matplotlib makes the same PNG size (some round
-    # inches * dpi, others truncate it: 2.3 * 50 is 114.99999999999999)
-    pixels = np.round(np.array([panel_size * ncol + (1.0 if valued else 0), panel_size * nrow + 0.3]) * dpi)
-    fig = plt.figure(figsize=tuple((pixels + 0.01) / dpi))
-    fig.subplots_adjust(left=0, right=1, bottom=0.07 if suptitle else 0, top=1 - 0.3 / fig.get_figheight(), wspace=0, hspace=0.08)
+    fig = _figure(plt, nrow, ncol, panel_size, dpi, bool(valued), bool(suptitle))
     for k, (panel, V) in enumerate(zip(panels, frames)):
         ax = fig.add_subplot(nrow, ncol, k + 1, projection="3d")
         _draw_panel(ax, panel, V, lambda v: cmap(norm(v)))
@@ -180,6 +176,17 @@ def render_panels(
     if suptitle:
         fig.text(0.5, 0.01, suptitle, ha="center", va="bottom", fontsize=9)  # a caption
     return _save_png(plt, fig, path, dpi)
+
+
+def _figure(plt, nrow: int, ncol: int, panel_size: float, dpi: int, colorbar: bool, caption: bool):
+    """An empty figure for ``nrow x ncol`` panels (and a colorbar, a caption)."""
+    # whole pixels, a hair over, so that every matplotlib makes the same PNG size (some round
+    # inches * dpi, others truncate it: 2.3 * 50 is 114.99999999999999)
+    pixels = np.round(np.array([panel_size * ncol + (1.0 if colorbar else 0), panel_size * nrow + 0.3]) * dpi)
+    fig = plt.figure(figsize=tuple((pixels + 0.01) / dpi))
+    fig.subplots_adjust(left=0, right=1, bottom=0.07 if caption else 0, top=1 - 0.3 / fig.get_figheight(),
+                        wspace=0, hspace=0.08)
+    return fig
 
 
 def _save_png(plt, fig, path, dpi: int) -> Path:

@@ -116,25 +116,31 @@ def virtual_scan(V, F, directions, resolution: tuple[int, int] = (320, 240), dis
         t = np.where(found, t, 0.0)
         depth = t + rng.normal(size=len(t)) * noise * diagonal * (t / diagonal) ** 2
         points = R[:, :3] + depth[:, None] * direction
-        # the range image's triangles: squares of four kept pixels with agreeing depths
-        index = np.full(len(t), -1, dtype=np.int64)
-        index[keep] = np.arange(int(keep.sum()))
-        grid = index.reshape(height, width)
-        z = np.where(keep, depth, np.nan).reshape(height, width)
         footprint = depth_jump * (depth[keep].max() if keep.any() else 0.0) * 2 * np.tan(np.radians(fov) / 2) / height
-        a, b, c, e = grid[:-1, :-1], grid[:-1, 1:], grid[1:, :-1], grid[1:, 1:]
-        za, zb, zc, ze = z[:-1, :-1], z[:-1, 1:], z[1:, :-1], z[1:, 1:]
-        corners = np.stack([za, zb, zc, ze])
-        square = (a >= 0) & (b >= 0) & (c >= 0) & (e >= 0)  # four hits: no NaN among their depths
-        spread = np.where(square, np.max(np.nan_to_num(corners), axis=0) - np.min(np.nan_to_num(corners), axis=0), np.inf)
-        square &= spread < footprint
-        faces = np.concatenate([np.stack([a[square], c[square], b[square]], axis=1),
-                                np.stack([b[square], c[square], e[square]], axis=1)]).astype(np.int64)
         P, N = points[keep], n[keep]
-        # the faces' winding: their normals toward the camera, as the points'
-        if len(faces):
-            fn = np.cross(P[faces[:, 1]] - P[faces[:, 0]], P[faces[:, 2]] - P[faces[:, 0]])
-            if np.einsum("ij,ij->i", fn, N[faces[:, 0]]).sum() < 0:
-                faces = faces[:, [0, 2, 1]]
+        faces = _range_faces(keep, depth, (height, width), footprint, P, N)
         scans.append(RangeScan(points=P, normals=N, faces=faces, eye=eye))
     return scans
+
+
+def _range_faces(keep: np.ndarray, depth: np.ndarray, shape: tuple, footprint: float, P: np.ndarray,
+                 N: np.ndarray) -> np.ndarray:
+    """The range image's triangles ``(f, 3)`` over the kept pixels' points ``P`` (normals
+    ``N``): squares of four kept pixels whose depths agree within ``footprint``, two
+    triangles each, wound with their normals towards the camera."""
+    index = np.full(len(depth), -1, dtype=np.int64)
+    index[keep] = np.arange(int(keep.sum()))
+    grid = index.reshape(shape)
+    z = np.where(keep, depth, np.nan).reshape(shape)
+    a, b, c, e = grid[:-1, :-1], grid[:-1, 1:], grid[1:, :-1], grid[1:, 1:]
+    corners = np.stack([z[:-1, :-1], z[:-1, 1:], z[1:, :-1], z[1:, 1:]])
+    square = (a >= 0) & (b >= 0) & (c >= 0) & (e >= 0)  # four hits: no NaN among their depths
+    spread = np.where(square, np.max(np.nan_to_num(corners), axis=0) - np.min(np.nan_to_num(corners), axis=0), np.inf)
+    square &= spread < footprint
+    faces = np.concatenate([np.stack([a[square], c[square], b[square]], axis=1),
+                            np.stack([b[square], c[square], e[square]], axis=1)]).astype(np.int64)
+    if len(faces):
+        fn = np.cross(P[faces[:, 1]] - P[faces[:, 0]], P[faces[:, 2]] - P[faces[:, 0]])
+        if np.einsum("ij,ij->i", fn, N[faces[:, 0]]).sum() < 0:
+            faces = faces[:, [0, 2, 1]]
+    return faces
