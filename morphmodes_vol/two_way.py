@@ -108,14 +108,12 @@ def two_way_pass(reg: "Registration", forward: "StartRun", progress) -> tuple["R
     (``metrics["two_way"]``)."""
     from dataclasses import replace
 
-    from .register import Registration  # a registration of its own, the other way
-
     o = reg.options
     log.info("two-way: registering the target onto the source")
     grid = o.grid if o.two_way_grid is None else o.two_way_grid
-    reverse = Registration((reg.target_vertices, reg.target_faces),
-                           (reg.source_vertices, reg.source_faces),
-                           o.replace(two_way=False, grid=grid, source_sign=reg.asked_sign))
+    reverse = type(reg)((reg.target_vertices, reg.target_faces),  # a registration the other way
+                        (reg.source_vertices, reg.source_faces),
+                        o.replace(two_way=False, grid=grid, source_sign=reg.asked_sign))
     shown = None if progress is None else (  # "[reverse: rest (coarse)] ..." and so on
         lambda e: progress(replace(e, start=f"reverse: {e.start}" if e.start else "reverse")))
     back = reverse.run(progress=shown)
