@@ -162,9 +162,8 @@ def render_panels(
     for k, (panel, V) in enumerate(zip(panels, frames)):
         ax = fig.add_subplot(nrow, ncol, k + 1, projection="3d")
         _draw_panel(ax, panel, V, lambda v: cmap(norm(v)))
-        ax.set_xlim(center[0] - half, center[0] + half)
-        ax.set_ylim(center[1] - half, center[1] + half)
-        ax.set_zlim(center[2] - half, center[2] + half)
+        for set_lim, c in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), center):
+            set_lim(c - half, c + half)
         ax.set_box_aspect((1, 1, 1), zoom=zoom)
         ax.view_init(elev=elev, azim=azim)
         ax.set_axis_off()
