@@ -39,8 +39,7 @@ def single_threaded_blas():
     """Context in which BLAS runs on one thread.
 
     The products of Algorithm 1 are small (at most n x 4m and 12m x 12m): a multithreaded
-    BLAS only adds wake-up costs, which are pathological on a busy machine (0.23 s instead
-    of 0.002 s for one 80 x 5000 x 80 product, measured with 2 cores under load).
+    BLAS only adds wake-up costs, which are pathological on a busy machine.
 
     BLAS's thread count belongs to the process, not to the calling thread. So the contexts
     of all threads count as one: the first to enter limits it, the last to leave restores

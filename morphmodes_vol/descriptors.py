@@ -10,9 +10,7 @@ informative multi-scale signature based on heat diffusion", SGP 2009),
 with ``(lambda_i, phi_i)`` the eigenpairs of Eq. (4) (the cotangent Laplacian and the lumped
 mass, as the skinning eigenmodes are computed), is intrinsic: it does not change when the
 surface bends without stretching, so at corresponding points of two poses it is nearly
-equal (measured on the five hardest lion and cat poses: a mean absolute difference of its log
-of 0.04-0.11 at the true correspondences, 0.11-0.39 at the registrations that missed them;
-docs/method.md, "Descriptors in the warped field"). Each mesh is scaled to unit area first
+equal (docs/method.md, "The stages of a registration"). Each mesh is scaled to unit area first
 and each time's signature is divided by the heat trace ``sum_i exp(-lambda_i t)``, so the
 descriptor is invariant to a similarity of the mesh.
 

@@ -1,10 +1,9 @@
 """Initialization without landmarks: a rigid or similarity alignment that minimizes the
-same SDF energy, Eq. (3), started from several candidate orientations (issue 5).
+same SDF energy, Eq. (3), started from several candidate orientations.
 
 The paper starts Algorithm 1 at the rest pose, and its first stage (one mode: a global
-affine map) is a local descent: on a pose turned by 70-105 degrees (lion-04, -05, -07 of the
-shared data) it lands in a wrong basin that later modes never leave. Here, before
-Algorithm 1:
+affine map) is a local descent: on a body turned a lot as a whole it lands in a wrong basin
+that later modes never leave. Here, before Algorithm 1:
 
 1. *Candidates.* Each candidate maps the source's volume centroid onto the target's and
    turns it by one rotation of a fixed set: the 24 rotations of the cube (axis permutations
@@ -15,8 +14,8 @@ Algorithm 1:
 2. *Source field.* The source only moves rigidly (or by a similarity) here, so its signed
    distance is sampled once, by one closest-point query, on a grid of the coarse spacing
    in its rest frame (:class:`RigidSourceField`); Eq. (3) for any map ``x -> s R x + t``
-   is then ``f(q) = s f_0(R^T (q - t) / s)``, trilinear in the samples. On the lion and
-   cat poses this made the alignment 5-20x faster at the same result (docs/method.md).
+   is then ``f(q) = s f_0(R^T (q - t) / s)``, trilinear in the samples: no mesh query per
+   evaluation.
 3. *Screening.* Eq. (3) on a coarse grid (``init_grid`` nodes along the longest side) at
    every candidate and at the rest pose; the unrotated start (centroids matched) and the
    ``init_candidates - 1`` lowest others go on.
@@ -27,12 +26,9 @@ Algorithm 1:
    damping is measured by the vertices' mean squared displacement; a step is applied
    exactly (Rodrigues rotation, ``exp(s)`` scale) and kept when the true energy decreases.
 5. *Choice, with an orientation prior.* The unrotated start's alignment is kept unless a
-   rotated start reaches an energy below ``init_switch`` times its energy. On the
-   articulated lion and cat poses the lowest rigid energy was a head-to-tail flip on 8 of
-   18 pairs (and a 95-degree error on one more), at energy ratios 0.68-1.00 to the
-   unrotated start; rotated starts that were right where the unrotated one was not won by
-   ratios of 0.38-0.55 on three pairs and 0.72 on one, which the prior misses
-   (docs/method.md). The
+   rotated start reaches an energy below ``init_switch`` times its energy: on an
+   articulated body the lowest rigid energy is often a head-to-tail flip, close in energy
+   to the right orientation. The
    chosen map ``x -> A [x; 1]`` is handed to Algorithm 1 as the coefficients of mode 0 (the
    constant mode, so ``T_0 = (A - [I 0]) / w_0``), which then goes on with a full affine
    map and the deformation modes from there.

@@ -36,7 +36,7 @@ __all__ = [
 ]
 
 COLLAPSE_FRACTION = 0.01
-"""A triangle has collapsed when its area is below this fraction of its rest area (issue 4)."""
+"""A triangle has collapsed when its area is below this fraction of its rest area."""
 
 
 def vertex_errors(registered: np.ndarray, truth: np.ndarray) -> np.ndarray:

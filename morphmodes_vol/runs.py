@@ -112,7 +112,7 @@ class StartRunner:
         """Algorithm 1 from every start, advanced in lockstep one stage (mode) at a time.
 
         After each stage from ``start_check_modes`` on, a run stops early when another
-        makes it redundant (docs/method.md, "Initialization and two starts", item 6),
+        makes it redundant (docs/method.md, "The stages of a registration"),
         pair by pair:
 
         - *merged*: the two runs' vertices are closer than ``start_merge_distance`` (RMS,

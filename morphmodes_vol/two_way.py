@@ -1,4 +1,4 @@
-"""Correspondences from the reverse registration (``two_way``; docs/method.md, "Two-way").
+"""Correspondences from the reverse registration (``two_way``; docs/method.md, "The stages of a registration").
 
 Registering the target onto the source deforms the target mesh ``(Y, G)`` into ``Yd``, which
 lies on the source's surface. Each source vertex ``x_i`` then has a counterpart on the
@@ -96,7 +96,7 @@ def closest_point_rows(X: np.ndarray, faces: np.ndarray, points: np.ndarray) -> 
 
 
 def two_way_pass(reg: "Registration", forward: "StartRun", progress) -> tuple["RegistrationResult", list["StartRun"], dict]:
-    """``two_way`` (docs/method.md, "Two-way registration"): register the target onto the
+    """``two_way`` (docs/method.md, "The stages of a registration"): register the target onto the
     source, fit the subspace to the correspondences it implies, in two ways: the source
     vertices' counterparts on the target
     (:func:`~morphmodes_vol.two_way.reverse_correspondences`), and those stacked with the

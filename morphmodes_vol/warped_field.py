@@ -16,12 +16,11 @@ query of the rest mesh; after that an evaluation is a skinning product and trili
 of the target grid, with no BVH query, and the residual's Jacobian is explicit,
 ``dr_p / dT_j[a, b] = -d_a g(phi(p)) w_j(p) [p 1]_b`` (``grad g`` by central differences of
 the trilinear samples, a quarter spacing apart). The approximation of ``f`` grows
-with the distance from the surface (measured on lion-01 at the truth's 20-mode fit: RMS
-``0.005`` within ``h/2`` of the surface, ``0.018`` within ``3h``), so the band is narrow;
+with the distance from the surface (it is exact for rigid motions), so the band is narrow;
 the term that is lost is the part of Eq. (2) that asks the target's surface to be covered.
 Terms on the vertices (the isometry prior, landmarks) are added as they are.
 
-With ``descriptors`` (docs/method.md, "Descriptors in the warped field"), each node also
+With ``descriptors`` (docs/method.md, "The stages of a registration"), each node also
 compares intrinsic descriptors (:mod:`morphmodes_vol.descriptors`): ``d0(p)``, the rest
 source's at ``p``'s closest surface point, with the target's ``d(phi_T(p))`` (each node of a
 grid takes the value at its closest target surface point), over ``c`` channels,
@@ -33,7 +32,7 @@ so that a part lands on the part of the target that has its shape, not only on s
 :class:`WarpedRestField` builds the field and minimizes ``E_w`` over the subspace, one mode
 at a time as Algorithm 1 does, by Levenberg-Marquardt; :meth:`Registration.run` runs it
 from every start and refines the best result on Eq. (3) itself (``warped_pass``;
-docs/method.md, "The warped rest field").
+docs/method.md, "The stages of a registration").
 """
 
 from __future__ import annotations

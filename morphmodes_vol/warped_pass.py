@@ -2,7 +2,7 @@
 other orientations, its best results refined on Eq. (3), and hops through the field's
 landscape (plain and with descriptor channels) from the kept result.
 
-docs/method.md, "The warped rest field", has the method; :mod:`morphmodes_vol.warped_field`
+docs/method.md, "The stages of a registration", has the method; :mod:`morphmodes_vol.warped_field`
 the field itself.
 """
 
@@ -122,7 +122,7 @@ def warped_fields(reg: "Registration", starts, candidates=(), descriptors=None) 
 
 def warped_pass(reg: "Registration", starts, forward: "StartRun", progress, candidates=(),
                 fields: "WarpedFields | None" = None):
-    """``warped_pass`` (docs/method.md, "The warped rest field"): minimize the warped rest
+    """``warped_pass`` (docs/method.md, "The stages of a registration"): minimize the warped rest
     field (:class:`~morphmodes_vol.warped_field.WarpedRestField`) from every start (and from
     ``candidates``, ``(label, T0)`` pairs: the initialization stage's other orientations with
     ``warped_candidates``; past ``warped_prune_modes`` modes only from those of field energy
@@ -214,7 +214,7 @@ def _hops(reg: "Registration", fields: "WarpedFields", current: "StartRun", obje
         log.info("warped_descriptors: a target given as an SDF has no surface for descriptors")
         descriptors = {"skipped": "the target is an SDF, not a mesh"}
     elif descriptor_hop and np.isfinite(objective):
-        # docs/method.md, "Descriptors in the warped field"
+        # docs/method.md, "The stages of a registration"
         try:
             made = fields.descriptors
             if isinstance(made, Exception):

@@ -8,7 +8,7 @@ Algorithm 1 from each of those starts (the aligned start only, ``init_keep_rest=
 Trial 0 is the unturned alignment. Prints, per trial, the ground-truth error, the number of
 SDF evaluations and the energy after stages 1, 4, 7, ... (a markdown table), and the spread.
 A spread much wider than the turn explains (a few degrees move vertices by a few hundredths)
-means the outcome depends on the start chaotically (docs/method.md, "Steps per stage").
+means the outcome depends on the start chaotically (docs/method.md, "Algorithm 1").
 """
 
 from __future__ import annotations
