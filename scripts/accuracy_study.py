@@ -14,13 +14,13 @@ onto ``--sweep-targets`` (default lion-01 and lion-05). Ground-truth error:
 
 Methods:
 - ``ours``: :class:`morphmodes_vol.RegistrationOptions` defaults, with ``--set`` overrides;
-- ``fast``: :meth:`RegistrationOptions.fast` (``--fast``: grid 48, the band quadrature,
+- ``fast``: the ``fast`` preset (grid 48, the band quadrature,
   no warped-pass starts from the other orientations), with the same overrides;
-- ``fastest``: :meth:`RegistrationOptions.fastest` (``--fastest``: the warped rest field alone from the
+- ``fastest``: the ``fastest`` preset (the warped rest field alone from the
   rest pose and the SDF alignment, refined on Eq. 3; no runs of Algorithm 1), with the same
   overrides;
-- ``no-warped``: the defaults with ``warped_pass=False`` (the default until 2026-11-30: the runs
-  alone, without the warped rest field);
+- ``no-warped``: the defaults with ``warped_pass=False`` (the runs alone, without the warped
+  rest field);
 - ``two-way``: the defaults with ``two_way=True`` (the reverse registration's correspondences as
   two more starts; about twice the time);
 - ``paper``: the paper-faithful settings, :meth:`RegistrationOptions.paper_faithful`
