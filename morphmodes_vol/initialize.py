@@ -602,17 +602,15 @@ def align(
     Q = np.ascontiguousarray(Q, dtype=np.float64)
     g = np.ascontiguousarray(g, dtype=np.float64)
     weights = np.broadcast_to(np.asarray(weight, dtype=np.float64), g.shape)
-    # the cell volume: the largest weight (an open target's confidence lowers some)
-    spacing = float(np.cbrt(float(np.max(weights)))) if np.max(weights) > 0 else 0.0
-    if not spacing > 0:
+    if not np.max(weights) > 0:
         raise ValueError(f"weight must be positive (the coarse grid's cell volume), got {weight}")
+    spacing = float(np.cbrt(float(np.max(weights))))  # the cell volume: the largest weight
     cs, ct, rotations, scale = _volume_frames(X0, F, Q, g, kind, sign)
     field = source_field(X0, F, Q, spacing, cs, ct, scale, sign)
     t_field = time.perf_counter() - t0
 
     # every rotation about the centroids (the identity first), and the rest pose itself (last)
-    starts = [Similarity(R, ct - scale * R @ cs, scale) for R in rotations]
-    starts.append(Similarity(np.eye(3), np.zeros(3), 1.0))
+    starts = [Similarity(R, ct - scale * R @ cs, scale) for R in rotations] + [Similarity(np.eye(3), np.zeros(3), 1.0)]
     evaluations = [evaluate(field, S, Q, g, weights) for S in starts]
     spent = len(starts)
     screened = np.array([ev.energy for ev in evaluations])
