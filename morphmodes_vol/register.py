@@ -393,7 +393,7 @@ class Registration:
         return float(self._cached("full", lambda: self.with_terms(self.full_energy())).evaluate(X).energy)
 
     def coarse_objective(self, X: np.ndarray) -> float:
-        """:meth:`_objective` with Eq. (3) on every node of the coarse pass's grid (every
+        """:meth:`objective` with Eq. (3) on every node of the coarse pass's grid (every
         other node of the quadrature grid): what the coarse pass compares its runs by."""
         evaluator = self._cached("coarse full", lambda: self.with_terms(self._coarse_sdf("full")))
         return float(evaluator.evaluate(X).energy)

@@ -51,11 +51,11 @@ class DescriptorChannels:
 
 @dataclass(frozen=True)
 class WarpedFields:
-    """What :meth:`Registration._warped_fields` returns: the field, the candidates skipped,
+    """What :func:`warped_fields` returns: the field, the candidates skipped,
     every field run to ``prune_modes`` modes (``first``), those stopped there (``pruned``,
     label -> field energy) and the finished runs (``results``); ``staged``: whether the runs
     were stopped at ``prune_modes`` at all; ``descriptors``: the descriptor field made beside
-    them (``_descriptor_field``'s result or its error), else ``None``."""
+    them (:func:`descriptor_field`'s result or its error), else ``None``."""
 
     field: WarpedRestField
     skipped: list
@@ -64,18 +64,18 @@ class WarpedFields:
     results: dict
     prune_modes: int
     staged: bool
-    descriptors: tuple | Exception | None = None  # _descriptor_field's result, or its error
+    descriptors: tuple | Exception | None = None  # descriptor_field's result, or its error
 
 
 def warped_fields(reg: "Registration", starts, candidates=(), descriptors=None) -> "WarpedFields":
-    """The warped pass's field runs (``warped_pass``; :meth:`_warped_pass`): the field
+    """The warped pass's field runs (``warped_pass``; :func:`warped_pass`): the field
     built once, minimized from every start and from ``candidates`` (``(label, T0)``;
     one that maps the source within ``start_merge_distance`` of a start already taken is
     skipped) to ``warped_prune_modes`` modes, then from those of field energy within
     ``warped_prune_ratio`` of the lowest to the end; with ``descriptors`` (the future of
-    :meth:`_descriptor_channels_or_error`), also the descriptor field
-    (:meth:`_descriptor_field`, or the error that stopped it). No source query after the
-    field's one at the start, and nothing from the runs on Eq. (3): :meth:`run` lets it
+    :func:`descriptor_channels_or_error`), also the descriptor field
+    (:func:`descriptor_field`, or the error that stopped it). No source query after the
+    field's one at the start, and nothing from the runs on Eq. (3): ``Registration.run`` lets it
     go on beside them (``overlap_field``)."""
     o = reg.options
     h = reg.quadrature.spacing
@@ -260,7 +260,7 @@ def descriptor_channels(reg: "Registration") -> "DescriptorChannels":
 
 
 def descriptor_channels_or_error(reg: "Registration") -> "DescriptorChannels | Exception":
-    """:meth:`_descriptor_channels`, or the error that stopped it (raised again where
+    """:func:`descriptor_channels`, or the error that stopped it (raised again where
     the descriptor hop is made, which logs it and goes without)."""
     try:
         return descriptor_channels(reg)
@@ -271,7 +271,7 @@ def descriptor_channels_or_error(reg: "Registration") -> "DescriptorChannels | E
 def descriptor_field(reg: "Registration", field: WarpedRestField,
                       channels: "DescriptorChannels | None" = None) -> tuple[WarpedRestField, int, float]:
     """``field`` with the descriptor channels (``channels``, made by
-    :meth:`_descriptor_channels` when not given). Returns the field, the node count of
+    :func:`descriptor_channels` when not given). Returns the field, the node count of
     the target's descriptor grid and the seconds spent on both."""
     c = descriptor_channels(reg) if channels is None else channels
     t = time.perf_counter()
