@@ -248,7 +248,7 @@ def descriptor_channels(reg: "Registration") -> "DescriptorChannels":
     """The descriptor channels of the warped field (``warped_descriptors``; docs/method.md,
     "Descriptors in the warped field"): the heat kernel signatures of the source and the
     target mesh, the target's on a grid of half the quadrature's nodes over its box. They
-    depend on the two meshes alone: :meth:`run` makes them beside the initialization
+    depend on the two meshes alone: ``Registration.run`` makes them beside the initialization
     (``overlap_field``)."""
     o = reg.options
     t = time.perf_counter()
