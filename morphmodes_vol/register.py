@@ -453,7 +453,7 @@ class Registration:
             metrics["ground_truth_error"] = ground_truth_error(vertices, truth)
         if self.landmarks is not None:  # diag is normalized for a mesh target, original for an SDF
             metrics.update(landmark_metrics(self, vertices, diag / self.normalization.scale
-                                                  if self.Y is not None else diag))
+                                            if self.Y is not None else diag))
         # surface distance and degeneracy (morphmodes_vol.metrics); a target given as an SDF
         # grid has no surface mesh to measure against
         if self.Y is not None:
