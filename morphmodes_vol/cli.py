@@ -12,10 +12,9 @@ import sys
 import time
 from pathlib import Path
 
-
 from .errors import MorphModesError, OptionError
 from .export import MESH_FORMATS, check_output_path, output_names, write_outputs
-from .options import PRESETS, SIGN_METHODS, RegistrationOptions, parse_setting, preset_description, toml_loads
+from .options import PRESETS, SIGN_METHODS, RegistrationOptions, parse_setting, preset_description, read_toml
 from .sdf.target import target_sdf_backend
 
 __all__ = ["main"]
@@ -60,12 +59,7 @@ class ProgressPrinter:
 def _read_config(path) -> dict:
     """The settings of a ``--config`` TOML file: the keys of :class:`RegistrationOptions` and
     ``preset``, at its top level or in an ``[options]`` table (a pipeline definition's)."""
-    try:
-        doc = toml_loads(Path(path).read_text())
-    except FileNotFoundError:
-        raise OptionError(f"{path}: no such config file") from None
-    except Exception as exc:  # a TOML syntax error
-        raise OptionError(f"{path}: not valid TOML ({exc})") from None
+    doc = read_toml(path, OptionError, "config file")
     table = doc.get("options", doc)
     if not isinstance(table, dict):
         raise OptionError(f"{path}: [options] must be a table")

@@ -8,19 +8,27 @@ therefore 1% of the size of the scene, whatever the units of the input files.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
+import os
 import typing
-from importlib import resources
 from dataclasses import dataclass
+from importlib import resources
 from typing import Literal
+
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10
+    import tomli as tomllib
 
 from .errors import OptionError
 from .sdf.points import POINT_SDF_METHODS, PointSDFMethod
 from .sdf.source import SignMethod
 from .sdf.target import TARGET_BACKENDS, TargetBackend
 
-__all__ = ["RegistrationOptions", "parse_setting", "preset_table", "preset_description", "Preconditioner", "PRECONDITIONERS", "SIGN_METHODS", "Optimizer",
-           "OPTIMIZERS", "Quadrature", "QUADRATURES", "Initialization", "INITIALIZATIONS"]
+__all__ = ["RegistrationOptions", "parse_setting", "preset_table", "preset_description", "read_toml",
+           "Preconditioner", "PRECONDITIONERS", "SIGN_METHODS", "Optimizer", "OPTIMIZERS", "Quadrature",
+           "QUADRATURES", "Initialization", "INITIALIZATIONS"]
 
 Preconditioner = Literal["block", "none"]
 PRECONDITIONERS = typing.get_args(Preconditioner)
@@ -307,7 +315,7 @@ class RegistrationOptions:
         >>> RegistrationOptions.preset("fast").grid
         48
         """
-        return cls(**preset_table(name))
+        return cls().replace(**preset_table(name))
 
     @classmethod
     def from_table(cls, table: typing.Mapping[str, object]) -> "RegistrationOptions":
@@ -325,8 +333,7 @@ class RegistrationOptions:
         40
         """
         table = dict(table)
-        base = preset_table(table.pop("preset", "default"))
-        return cls().replace(**{**base, **table})
+        return cls.preset(table.pop("preset", "default")).replace(**table)
 
     def __post_init__(self) -> None:
         for name, (ok, what) in _CHECKS.items():
@@ -464,10 +471,12 @@ def preset_description(name: str) -> str:
     return _preset_file(name).get("description", "")
 
 
+@functools.lru_cache(maxsize=None)
 def _preset_file(name: str) -> dict:
+    """The parsed preset file, read once (callers copy what they hand out)."""
     if name not in PRESETS:
         raise OptionError(f"preset {name!r} is unknown: expected one of {PRESETS}")
-    return toml_loads(resources.files(__package__).joinpath("presets", f"{name}.toml").read_text())
+    return tomllib.loads(resources.files(__package__).joinpath("presets", f"{name}.toml").read_text("utf-8"))
 
 
 def parse_setting(item: str) -> tuple[str, object]:
@@ -484,15 +493,23 @@ def parse_setting(item: str) -> tuple[str, object]:
     if not sep or not key:
         raise OptionError(f"{item!r}: expected KEY=VALUE, e.g. grid=48")
     try:
-        return key, toml_loads(f"v = {value.strip()}")["v"]
-    except Exception:  # not a TOML value: a bare string
+        return key, tomllib.loads(f"v = {value.strip()}")["v"]
+    except tomllib.TOMLDecodeError:  # not a TOML value: a bare string
         return key, value.strip()
 
 
-def toml_loads(text: str) -> dict:
-    """Parse TOML text (``tomllib``, or ``tomli`` on Python 3.10)."""
+def read_toml(path: str | os.PathLike, error: type[Exception] = OptionError, what: str = "file") -> dict:
+    """The TOML file at ``path`` as a dict (``tomllib``, or ``tomli`` on Python 3.10).
+
+    Raises
+    ------
+    error
+        ``"<path>: no such <what>"`` or ``"<path>: not valid TOML (...)"``.
+    """
     try:
-        import tomllib
-    except ModuleNotFoundError:  # Python 3.10
-        import tomli as tomllib
-    return tomllib.loads(text)
+        with open(path, "rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError:
+        raise error(f"{path}: no such {what}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise error(f"{path}: not valid TOML ({exc})") from None

@@ -17,7 +17,7 @@ from typing import Any
 
 from ..errors import OptionError, PipelineError
 from ..export import MESH_FORMATS
-from ..options import RegistrationOptions, preset_table
+from ..options import PRESETS, RegistrationOptions, read_toml
 
 __all__ = ["Pipeline", "PairSpec", "load_pipeline", "parse_pipeline"]
 
@@ -93,20 +93,6 @@ class Pipeline:
     plot_metric: str = "ground_truth_error"
 
 
-def _read_toml(path: Path) -> dict:
-    try:
-        import tomllib
-    except ModuleNotFoundError:  # Python 3.10
-        import tomli as tomllib
-    try:
-        with open(path, "rb") as fh:
-            return tomllib.load(fh)
-    except FileNotFoundError:
-        raise PipelineError(f"{path}: no such pipeline file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise PipelineError(f"{path}: not valid TOML ({exc})") from None
-
-
 def load_pipeline(path: str | os.PathLike, output: str | os.PathLike | None = None) -> Pipeline:
     """Read and check a pipeline definition.
 
@@ -122,7 +108,7 @@ def load_pipeline(path: str | os.PathLike, output: str | os.PathLike | None = No
         Naming the file and the key, for any invalid entry.
     """
     path = Path(path)
-    return parse_pipeline(_read_toml(path), path, output)
+    return parse_pipeline(read_toml(path, PipelineError, "pipeline file"), path, output)
 
 
 class _Checker:
@@ -179,14 +165,10 @@ def _options(doc: dict, ck: _Checker) -> RegistrationOptions:
     table = doc.get("options", {})
     names = {f.name for f in dataclasses.fields(RegistrationOptions)}
     ck.keys(table, names | {"preset"}, "options")
-    try:
-        preset_table(table.get("preset", "default"))
-    except OptionError as exc:
-        ck.fail("options.preset", str(exc))
     try:  # the path of the command line's --preset, --config and --set too
         return RegistrationOptions.from_table(table)
     except (OptionError, TypeError) as exc:
-        ck.fail("options", str(exc))
+        ck.fail("options.preset" if table.get("preset", "default") not in PRESETS else "options", str(exc))
 
 
 def _variants(doc: dict, base: RegistrationOptions, ck: _Checker) -> list[tuple[dict, RegistrationOptions]]:
