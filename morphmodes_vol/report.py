@@ -3,9 +3,9 @@ metrics of the result and what it cost (``RegistrationResult.metrics``)."""
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
-import logging
 
 import numpy as np
 
@@ -20,6 +20,7 @@ if TYPE_CHECKING:
 __all__ = ["Outcome", "correspondence", "result_metrics", "cost_metrics", "landmark_metrics"]
 
 log = logging.getLogger(__name__)
+
 
 @dataclass
 class Outcome:

@@ -10,9 +10,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .errors import OptionError
 from .options import RegistrationOptions
 from .pointcloud import PointCloud, as_point_cloud, is_point_cloud_file, load_point_cloud, oriented_normals
-from .errors import OptionError
 from .sdf import Grid, TargetSDF, build_target_sdf, is_target_sdf_path, load_target_sdf
 from .sdf.points import points_target_sdf, poisson_depth, poisson_surface
 from .sdf.target import TARGET_SDF_SUFFIXES, DenseTargetSDF, target_sdf_backend
@@ -90,7 +90,7 @@ def save_target_sdf(reg: "Registration", path) -> Path:
     >>> import tempfile, pathlib
     >>> from morphmodes_vol.primitives import capsule
     >>> from morphmodes_vol import Registration, RegistrationOptions
->>> from morphmodes_vol.sdf import load_target_sdf
+    >>> from morphmodes_vol.sdf import load_target_sdf
     >>> V, F = capsule(count=(8, 8))
     >>> reg = Registration((V, F), (V * 3.0 + 5.0, F), RegistrationOptions(grid=16, modes=2))
     >>> path = save_target_sdf(reg, pathlib.Path(tempfile.mkdtemp()) / "target.npz")

@@ -1,4 +1,5 @@
-"""Correspondences from the reverse registration (``two_way``; docs/method.md, "The stages of a registration").
+"""Correspondences from the reverse registration (``two_way``; docs/method.md, "The stages of a
+registration").
 
 Registering the target onto the source deforms the target mesh ``(Y, G)`` into ``Yd``, which
 lies on the source's surface. Each source vertex ``x_i`` then has a counterpart on the
@@ -15,6 +16,7 @@ objective from each fit: starts that the forward runs cannot reach on some poses
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -95,7 +97,8 @@ def closest_point_rows(X: np.ndarray, faces: np.ndarray, points: np.ndarray) -> 
                          shape=(k, X.shape[0]))
 
 
-def two_way_pass(reg: "Registration", forward: "StartRun", progress) -> tuple["RegistrationResult", list["StartRun"], dict]:
+def two_way_pass(reg: "Registration", forward: "StartRun",
+                 progress) -> tuple["RegistrationResult", list["StartRun"], dict]:
     """``two_way`` (docs/method.md, "The stages of a registration"): register the target onto the
     source, fit the subspace to the correspondences it implies, in two ways: the source
     vertices' counterparts on the target
@@ -106,8 +109,6 @@ def two_way_pass(reg: "Registration", forward: "StartRun", progress) -> tuple["R
     steps); and compare with the ``forward`` run's result by the objective on the full
     grid. Returns the reverse registration, the two runs and the report
     (``metrics["two_way"]``)."""
-    from dataclasses import replace
-
     o = reg.options
     log.info("two-way: registering the target onto the source")
     grid = o.grid if o.two_way_grid is None else o.two_way_grid

@@ -38,7 +38,7 @@ DESCRIPTOR_ERRORS = (MeshValidationError, ArpackError, np.linalg.LinAlgError)
 
 @dataclass(frozen=True)
 class DescriptorChannels:
-    """What :meth:`Registration._descriptor_channels` makes: the source's heat kernel
+    """What :func:`descriptor_channels` makes: the source's heat kernel
     signatures ``source (n, c)``, the target's on the nodes of ``grid`` (``values``, as
     :func:`~morphmodes_vol.descriptors.surface_descriptor_grid` returns them) and the seconds
     spent."""
