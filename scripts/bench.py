@@ -369,25 +369,17 @@ def main() -> int:
     print(f"wrote {out / 'bench.json'} and {out / 'bench.md'}")
     if args.docs:
         docs = ROOT / "docs" / "benchmarks.md"
-        docs.write_text(benchmarks_page(lines, sys.argv[1:], report["machine"]))
+        docs.write_text(benchmarks_page(lines, args, report["machine"]))
         print(f"wrote {docs}")
     return 0
 
 
-def benchmarks_page(lines: list[str], argv: list[str], machine: dict) -> str:
-    """docs/benchmarks.md: the table of a run and the command and machine that made it."""
-    kept, skip = [], False
-    for a in argv:  # the command without --docs and the (machine's) output folder
-        if skip or a == "--docs":
-            skip = False
-            continue
-        if a == "--out":
-            skip = True
-            continue
-        if not a.startswith("--out="):
-            kept.append(a)
-    command = " ".join(["python scripts/bench.py", *kept])
-    return (f"# Benchmark\n\nWritten by `{command.strip()} --docs` on "
+def benchmarks_page(lines: list[str], args, machine: dict) -> str:
+    """docs/benchmarks.md: the table of a run (``lines``), the command that made it (from
+    its parsed ``args``, without the machine's output folder) and the machine."""
+    command = " ".join(["python scripts/bench.py", "--pairs", *args.pairs, "--methods", *args.methods,
+                        *(["--set", *args.set] if args.set else []), "--docs"])
+    return (f"# Benchmark\n\nWritten by `{command}` on "
             f"{time.strftime('%Y-%m-%d')}, {machine['cpus']} CPUs, Python {machine['python']} "
             f"({machine['platform']}). Every method runs in a child process of its own, one after "
             "the other; wall time covers loading to written results. Compare ratios within a "
