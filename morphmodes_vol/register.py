@@ -102,7 +102,7 @@ class RegistrationResult:
         node of the fine or the coarse grid, not among the former), ``points_queried``
         (every point sent to the source mesh's closest-point queries, the alignment's source
         field included) and ``full_grid_equivalents`` (that over the grid's nodes: the cost in
-        evaluations of Eq. 3 on the full grid, each of which ``--optimizer paper`` makes); with
+        evaluations of Eq. 3 on the full grid, each of which the ``paper`` preset makes); with
         ``two_way`` these include the reverse registration's, and ``two_way`` reports the
         choice (``kept``: ``"forward"``, ``"reverse"`` or ``"reverse, both sides"``;
         ``objectives``: each one's objective on the full grid; the reverse registration's

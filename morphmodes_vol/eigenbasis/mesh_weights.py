@@ -103,7 +103,7 @@ def mesh_skinning_weights(V, F, modes: int, seed: int = 0, weld_tolerance: float
     except (ArpackError, np.linalg.LinAlgError, RuntimeError) as exc:  # no convergence, singular
         raise MeshValidationError(
             f"source: the skinning eigenproblem could not be solved ({type(exc).__name__}: {exc}); "
-            "try another --seed, fewer --modes, or remesh the source"
+            "try another seed (--set seed=1), fewer --modes, or remesh the source"
         ) from None
 
     # each input vertex -> welded vertex -> row of Wc; welded vertices not in the
