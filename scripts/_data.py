@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import ast
 import csv
 from pathlib import Path
 
 from morphmodes_vol.datasets import shared_data_dir as data_dir  # noqa: F401
+from morphmodes_vol.options import parse_setting
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -37,15 +37,9 @@ def mesh_file(name: str) -> Path:
 
 
 def parse_overrides(items: list[str]) -> dict:
-    """``["grid=48", "preconditioner=none"]`` -> ``{"grid": 48, "preconditioner": "none"}``."""
-    out = {}
-    for item in items:
-        key, _, value = item.partition("=")
-        try:
-            out[key] = ast.literal_eval(value)
-        except (ValueError, SyntaxError):
-            out[key] = value
-    return out
+    """``["grid=48", "warped_pass=false"]`` -> ``{"grid": 48, "warped_pass": False}``: the
+    values read as the command line's ``--set`` reads them (TOML values, else a string)."""
+    return dict(parse_setting(item) for item in items)
 
 
 def write_csv(path, rows: list[dict]) -> None:
