@@ -117,9 +117,13 @@ def table(rows, pairs) -> str:
             mesh = np.array([float(cell[(n, "mesh", "ours")]["error"]) if (n, "mesh", "ours") in cell
                              else np.nan for n in both])
             worse = [n for n, a, b in zip(both, ours, base) if np.isfinite(b) and a > b]
-            md.append(f"- {s}, {k}: ours {np.nanmean(ours):.4f} (worst {np.nanmax(ours / mesh):.2f}x its mesh "
-                      f"registration), RICP+NRICP {np.nanmean(base):.4f} ({np.nanmean(base) / np.nanmean(ours):.2f}x); "
-                      f"worse than RICP+NRICP on {len(worse)} of {len(both)}" + (f" ({', '.join(worse)})" if worse else ""))
+            line = f"- {s}, {k}: ours {np.nanmean(ours):.4f}"
+            if np.isfinite(mesh).any():
+                line += f" (worst {np.nanmax(ours / mesh):.2f}x its mesh registration)"
+            if np.isfinite(base).any():
+                line += (f", RICP+NRICP {np.nanmean(base):.4f} ({np.nanmean(base) / np.nanmean(ours):.2f}x); worse than "
+                         f"RICP+NRICP on {len(worse)} of {len(both)}" + (f" ({', '.join(worse)})" if worse else ""))
+            md.append(line)
     return "\n".join(md) + "\n"
 
 
