@@ -73,9 +73,12 @@ def orient_faces(V, F) -> tuple[np.ndarray, int]:
 
     Triangles are connected through manifold edges (shared by exactly two triangles); within
     each connected patch every triangle is flipped, if needed, to agree with its neighbours
-    (breadth-first from the patch's first triangle), then the whole patch is flipped if its
-    signed volume (divergence theorem about its centroid) is negative. Non-manifold edges
-    do not connect patches.
+    (breadth-first from the patch's first triangle). A closed patch (no edge of one triangle)
+    is then flipped whole if its signed volume (divergence theorem) is negative. An open
+    patch (a scan's view, a mask, a surface with holes) encloses nothing, and its signed
+    volume about any point says how it bends, not which way it faces: it keeps the
+    orientation most of its area was given in (a range scan's triangles face the camera).
+    Non-manifold edges do not connect patches.
 
     Parameters
     ----------
@@ -96,6 +99,11 @@ def orient_faces(V, F) -> tuple[np.ndarray, int]:
     >>> G, k = orient_faces(V, F[:, ::-1])         # an inside-out tetrahedron
     >>> k, bool(np.array_equal(G, F))
     (4, True)
+    >>> G, k = orient_faces(V, F[[0, 1, 2]][:, ::-1])  # the tetrahedron's open cup, facing in
+    >>> k                                            # as given: nothing says it is wrong
+    0
+    >>> orient_faces(V, np.r_[F[[0, 1]][:, ::-1], F[[2]]])[1]  # one of three against the others
+    1
     """
     V = np.asarray(V, dtype=np.float64)
     F = np.array(F, dtype=np.int64, copy=True)
@@ -141,15 +149,18 @@ def orient_faces(V, F) -> tuple[np.ndarray, int]:
         pred = pred[pred]
     flip = flip ^ flip[pred]  # the root's own mark is False: a no-op once converged
     F[flip] = F[flip][:, ::-1]
-    # outward: positive signed volume per patch, about the patch's centroid
     tri = V[F]
     centroid = np.stack([np.bincount(labels, tri[:, :, d].mean(axis=1), ncomp) for d in range(3)], 1)
     tri = tri - (centroid / sizes[:, None])[labels][:, None, :]
     det = np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2]))
     area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    # a flat patch (one triangle, a plane) encloses nothing: leave it as it is
+    # closed patches: outward, a positive signed volume (a flat one encloses nothing: as it is)
     inverted = np.bincount(labels, det, ncomp) < -1e-9 * np.bincount(labels, area, ncomp) ** 1.5
-    outward = inverted[labels]
+    # open patches (an edge of one triangle): the orientation of most of their given area
+    open_patch = np.zeros(ncomp, dtype=bool)
+    open_patch[labels[face[order[start[count == 1]]]]] = True
+    against = np.bincount(labels, area * flip, ncomp) > 0.5 * np.bincount(labels, area, ncomp)
+    outward = np.where(open_patch, against, inverted)[labels]
     F[outward] = F[outward][:, ::-1]
     flip ^= outward
     return F, int(flip.sum())

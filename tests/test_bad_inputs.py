@@ -236,6 +236,32 @@ def test_inconsistent_and_inverted_orientation_give_the_same_sdfs():
         assert reg.energy().evaluate(reg.X0).energy == clean.energy().evaluate(clean.X0).energy
 
 
+def test_an_open_patch_keeps_the_orientation_most_of_it_was_given_in():
+    """A range scan of a hollow (a bowl seen from above, its triangles facing the camera):
+    its signed volume about any point is negative, yet it faces the right way. Before, the
+    patch was flipped whole, and the target's sign and confidence were wrong behind it."""
+    from morphmodes_vol.repair import orient_faces
+    from morphmodes_vol.sdf.source import is_closed
+
+    u = np.linspace(-1, 1, 21)
+    X, Y = np.meshgrid(u, u, indexing="ij")
+    V = np.c_[X.ravel(), Y.ravel(), (X**2 + Y**2).ravel()]
+    i = np.arange(20)[:, None] * 21 + np.arange(20)[None, :]
+    a, b, c, d = i.ravel(), i.ravel() + 21, i.ravel() + 1, i.ravel() + 22
+    F = np.r_[np.c_[a, b, c], np.c_[c, b, d]]
+    up = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])[:, 2]
+    F[up < 0] = F[up < 0][:, ::-1]  # every triangle faces +z, the camera above the bowl
+    assert not is_closed(F)
+    G, k = orient_faces(V, F)
+    assert k == 0 and np.array_equal(G, F)
+    some = make_rng().random(len(F)) < 0.3  # a third of them reversed: mended to the rest
+    messy = F.copy()
+    messy[some] = messy[some][:, ::-1]
+    G, k = orient_faces(V, messy)
+    assert k == some.sum() and np.array_equal(G, F)
+    assert np.array_equal(orient_faces(V, F[:, ::-1])[0], F[:, ::-1])  # facing down, as given
+
+
 def test_open_and_non_manifold_meshes_register(caplog):
     V, F, target = small_pair()
     holes = F[6:]  # three triangles removed near a pole
