@@ -158,11 +158,11 @@ def orient_faces(V, F) -> tuple[np.ndarray, int]:
     inverted = np.bincount(labels, det, ncomp) < -1e-9 * np.bincount(labels, area, ncomp) ** 1.5
     # open patches (an edge of one triangle): the orientation of most of their given area
     open_patch = np.zeros(ncomp, dtype=bool)
-    open_patch[labels[face[order[start[count == 1]]]]] = True
+    open_patch[labels[face[order[start[count == 1]]]]] = True  # the patches of boundary half-edges
     against = np.bincount(labels, area * flip, ncomp) > 0.5 * np.bincount(labels, area, ncomp)
-    outward = np.where(open_patch, against, inverted)[labels]
-    F[outward] = F[outward][:, ::-1]
-    flip ^= outward
+    reverse = np.where(open_patch, against, inverted)[labels]
+    F[reverse] = F[reverse][:, ::-1]
+    flip ^= reverse
     return F, int(flip.sum())
 
 
@@ -200,7 +200,8 @@ def sdf_faces(V, F, name: str = "mesh") -> np.ndarray:
     if degenerate.any() or dup.any() or flipped:
         log.warning(
             "%s: for the signed distance, %d degenerate and %d duplicate triangles are left "
-            "out and %d triangles reversed to a consistent outward orientation (the mesh "
-            "itself is unchanged)", name, int(degenerate.sum()), int(dup.sum()), flipped,
+            "out and %d triangles reversed to a consistent orientation, outward where they "
+            "enclose a volume (the mesh itself is unchanged)", name, int(degenerate.sum()),
+            int(dup.sum()), flipped,
         )
     return G
