@@ -73,12 +73,13 @@ def orient_faces(V, F) -> tuple[np.ndarray, int]:
 
     Triangles are connected through manifold edges (shared by exactly two triangles); within
     each connected patch every triangle is flipped, if needed, to agree with its neighbours
-    (breadth-first from the patch's first triangle). A closed patch (no edge of one triangle)
-    is then flipped whole if its signed volume (divergence theorem) is negative. An open
-    patch (a scan's view, a mask, a surface with holes) encloses nothing, and its signed
-    volume about any point says how it bends, not which way it faces: it keeps the
-    orientation most of its area was given in (a range scan's triangles face the camera).
-    Non-manifold edges do not connect patches.
+    (breadth-first from the patch's first triangle). A closed patch (each of its edges used by
+    an even number of its own triangles) is then flipped whole if its signed volume
+    (divergence theorem) is negative. An open patch (a scan's view, a mask, a surface with
+    holes, a sheet bounded by non-manifold edges) encloses nothing, and its signed volume
+    about any point says how it bends, not which way it faces: it keeps the orientation most
+    of its area was given in (a range scan's triangles face the camera). Non-manifold edges
+    do not connect patches.
 
     Parameters
     ----------
@@ -157,8 +158,15 @@ def orient_faces(V, F) -> tuple[np.ndarray, int]:
     # closed patches: outward, a positive signed volume (a flat one encloses nothing: as it is)
     inverted = np.bincount(labels, det, ncomp) < -1e-9 * np.bincount(labels, area, ncomp) ** 1.5
     # open patches (an edge of one triangle): the orientation of most of their given area
+    # open patches: an edge used by an odd number of the patch's own triangles bounds it (an
+    # edge of one triangle, or a non-manifold edge the patch meets once or three times)
+    lab = labels[face]
+    by_patch = np.lexsort((key, lab))
+    k_p, l_p = key[by_patch], lab[by_patch]
+    first = np.flatnonzero(np.r_[True, (k_p[1:] != k_p[:-1]) | (l_p[1:] != l_p[:-1])])
+    uses = np.diff(np.r_[first, len(k_p)])
     open_patch = np.zeros(ncomp, dtype=bool)
-    open_patch[labels[face[order[start[count == 1]]]]] = True  # the patches of boundary half-edges
+    open_patch[l_p[first[uses % 2 == 1]]] = True
     against = np.bincount(labels, area * flip, ncomp) > 0.5 * np.bincount(labels, area, ncomp)
     reverse = np.where(open_patch, against, inverted)[labels]
     F[reverse] = F[reverse][:, ::-1]

@@ -262,6 +262,28 @@ def test_an_open_patch_keeps_the_orientation_most_of_it_was_given_in():
     assert np.array_equal(orient_faces(V, F[:, ::-1])[0], F[:, ::-1])  # facing down, as given
 
 
+def test_a_patch_bounded_by_non_manifold_edges_is_open_and_a_closed_one_with_a_fin_closed():
+    """A patch is closed when each of its edges is used by two of its own triangles, whatever
+    other triangles meet there: fins glued along the rim of a cup (each rim edge used by three
+    triangles) leave the cup open, kept as given (before, it was judged by its volume and
+    turned inside out); a fin glued to a tetrahedron's edge leaves it closed, turned outward."""
+    from morphmodes_vol.repair import orient_faces
+
+    V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    tet = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])  # outward
+    rim = np.array([[1, 2], [2, 3], [3, 1]])
+    apex = np.array([[2.0, 2, 2], [-1, -1, -1], [2, -1, 2], [-1, 2, -1], [2, 2, -1], [-1, -1, 2]])
+    W = np.r_[V, apex]
+    fins = np.array([[e[0], e[1], 4 + 2 * i + j] for i, e in enumerate(rim) for j in range(2)])
+    cup = tet[:3][:, ::-1]  # the tetrahedron's open cup, facing in
+    F = np.r_[cup, fins]
+    G, k = orient_faces(W, F)
+    assert k == 0 and np.array_equal(G, F)
+    F = np.r_[tet[:, ::-1], fins[:1]]  # inside out, a fin on one edge (used by three triangles)
+    G, k = orient_faces(W, F)
+    assert k == 4 and np.array_equal(G[:4], tet) and np.array_equal(G[4:], fins[:1])
+
+
 def test_open_and_non_manifold_meshes_register(caplog):
     V, F, target = small_pair()
     holes = F[6:]  # three triangles removed near a pole
