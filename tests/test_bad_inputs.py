@@ -236,6 +236,27 @@ def test_inconsistent_and_inverted_orientation_give_the_same_sdfs():
         assert reg.energy().evaluate(reg.X0).energy == clean.energy().evaluate(clean.X0).energy
 
 
+def test_bridge_triangles_are_named_in_a_warning_and_a_clean_mesh_gets_none(caplog):
+    """Vertices scrambled in a file make triangles that span the surface (the face poses of
+    the validation set: 30% of the area); the target's SDF would include them, so say so."""
+    from morphmodes_vol.repair import bridge_faces, sdf_faces
+
+    V, F = icosphere(4)  # median edge about 0.06 of the radius
+    with caplog.at_level(logging.WARNING):
+        sdf_faces(V, F, "target")
+    assert "bridges" not in caplog.text
+    assert not bridge_faces(V, F).any()
+    W = V.copy()
+    swap = np.arange(0, 2400, 80)  # 30 vertices given their antipodes' positions
+    W[swap] = -V[swap]
+    bridges = bridge_faces(W, F)
+    spanned = np.isin(F, swap).any(axis=1)
+    assert bridges.any() and not bridges[~spanned].any()  # only triangles at moved vertices
+    with caplog.at_level(logging.WARNING):
+        sdf_faces(W, F, "target")
+    assert f"target: {int(bridges.sum())} triangles" in caplog.text and "bridges" in caplog.text
+
+
 def test_an_open_patch_keeps_the_orientation_most_of_it_was_given_in():
     """A range scan of a hollow (a bowl seen from above, its triangles facing the camera):
     its signed volume about any point is negative, yet it faces the right way. Before, the
