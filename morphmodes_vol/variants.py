@@ -12,12 +12,14 @@ from __future__ import annotations
 import numpy as np
 
 from .mesh import bbox_diagonal, validate_mesh
+from .repair import bridge_faces
 
 __all__ = ["jittered", "retriangulated", "densified", "noisy", "partial_view", "half_view_direction", "sampled_points", "VARIANTS",
            "target_variant"]
 
-VARIANTS = ("original", "retriangulated", "dense", "noisy", "partial")
-"""The target variants of the robustness study, in its order."""
+VARIANTS = ("original", "retriangulated", "dense", "noisy", "partial", "no-bridges")
+"""The target variants of the robustness study, in its order (the study runs the first five
+unless asked for ``no-bridges``)."""
 
 
 def jittered(V, sigma: float, seed: int) -> np.ndarray:
@@ -149,7 +151,8 @@ def target_variant(V, F, variant: str, seed: int = 0) -> tuple[np.ndarray, np.nd
     """One of :data:`VARIANTS` of the target ``(V, F)``, as the robustness study defines it:
     ``retriangulated`` to 25% of the faces; ``dense``, each face split into 16; ``noisy``,
     re-triangulated then moved along the normals by 0.3% of the diagonal; ``partial``, the
-    faces facing :func:`half_view_direction`."""
+    faces facing :func:`half_view_direction`; ``no-bridges``, without the triangles that span
+    the surface (:func:`morphmodes_vol.repair.bridge_faces`)."""
     if variant == "original":
         return validate_mesh(V, F, "mesh")
     if variant == "retriangulated":
@@ -160,4 +163,7 @@ def target_variant(V, F, variant: str, seed: int = 0) -> tuple[np.ndarray, np.nd
         return noisy(*retriangulated(V, F, 0.25), sigma=3e-3, seed=seed + 1)
     if variant == "partial":
         return partial_view(V, F)
+    if variant == "no-bridges":
+        V, F = validate_mesh(V, F, "mesh")
+        return V, F[~bridge_faces(V, F)]
     raise ValueError(f"variant {variant!r}: expected one of {VARIANTS}")

@@ -62,3 +62,4 @@ def test_every_variant_and_an_unknown_one():
         assert W.ndim == 2 and G.max() < len(W)
     with pytest.raises(ValueError, match="expected one of"):
         target_variant(V, F, "upside down")
+    assert (target_variant(V, F, "no-bridges")[1] == F).all()  # a clean mesh has none
