@@ -207,7 +207,8 @@ def sdf_faces(V, F, name: str = "mesh") -> np.ndarray:
 
     Degenerate (:func:`degenerate_faces`) and duplicate (:func:`duplicate_faces`) triangles
     are left out and the rest oriented consistently (:func:`orient_faces`); a warning says
-    what changed.
+    what changed. Triangles spanning the surface (:func:`bridge_faces`) are kept, with a
+    warning when they hold over 1% of the area.
 
     Parameters
     ----------
