@@ -19,6 +19,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order, connected_components
 
 from .errors import MeshValidationError
+from .metrics import triangle_areas
 
 __all__ = ["bridge_faces", "degenerate_faces", "duplicate_faces", "orient_faces", "sdf_faces"]
 
@@ -251,8 +252,7 @@ def _warn_bridges(V, F, name: str, share: float = 0.01) -> None:
     bridges = bridge_faces(V, F)
     if not bridges.any():
         return
-    V = np.asarray(V, dtype=np.float64)
-    area = 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
+    area = triangle_areas(V, F)
     fraction = float(area[bridges].sum() / area.sum())
     if fraction > share:
         log.warning(
