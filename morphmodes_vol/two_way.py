@@ -28,7 +28,7 @@ if TYPE_CHECKING:
     from .register import Registration, RegistrationResult
     from .runs import StartRun
 
-__all__ = ["reverse_correspondences", "closest_point_rows", "two_way_pass"]
+__all__ = ["reverse_correspondences", "closest_point_rows", "reverse_grid", "two_way_pass"]
 
 log = logging.getLogger(__name__)
 
@@ -97,6 +97,12 @@ def closest_point_rows(X: np.ndarray, faces: np.ndarray, points: np.ndarray) -> 
                          shape=(k, X.shape[0]))
 
 
+def reverse_grid(options) -> int:
+    """The reverse registration's ``grid``: ``two_way_grid``, else three quarters of ``grid``
+    (the reverse registration only proposes starts; the runs from them are on ``grid``)."""
+    return options.two_way_grid if options.two_way_grid is not None else max(4, round(0.75 * options.grid))
+
+
 def two_way_pass(reg: "Registration", forward: "StartRun",
                  progress) -> tuple["RegistrationResult", list["StartRun"], dict]:
     """``two_way`` (docs/method.md, "The stages of a registration"): register the target onto the
@@ -111,7 +117,7 @@ def two_way_pass(reg: "Registration", forward: "StartRun",
     (``metrics["two_way"]``)."""
     o = reg.options
     log.info("two-way: registering the target onto the source")
-    grid = o.grid if o.two_way_grid is None else o.two_way_grid
+    grid = reverse_grid(o)
     reverse = type(reg)((reg.target_vertices, reg.target_faces),  # a registration the other way
                         (reg.source_vertices, reg.source_faces),
                         o.replace(two_way=False, grid=grid, source_sign=reg.asked_sign))

@@ -305,10 +305,10 @@ def main() -> int:
     ap.add_argument("--set", nargs="*", default=[], metavar="OPTION=VALUE",
                     help="override options of every run of ours, e.g. --set grid=48")
     ap.add_argument("--methods", nargs="*", default=["default", "lm", "paper", "nricp"],
-                    choices=["default", "fast", "fastest", "no-descriptors", "no-warped", "two-way", "lm",
+                    choices=["default", "accurate", "fast", "fastest", "no-descriptors", "no-warped", "lm",
                              "paper", "nricp"],
-                    help="default, fast, fastest, paper: the presets; no-descriptors, no-warped, two-way: "
-                         "the defaults with warped_descriptors=false, warped_pass=false, two_way=true (not "
+                    help="default, accurate, fast, fastest, paper: the presets; no-descriptors, no-warped: "
+                         "the defaults with warped_descriptors=false, warped_pass=false (not "
                          "run unless named); lm: one run from the rest pose (initialization=none, "
                          "coarse_starts=false, warped_pass=false); nricp: trimesh")
     ap.add_argument("--docs", action="store_true",
@@ -344,9 +344,8 @@ def main() -> int:
         if "no-warped" in args.methods:
             results["ours, --set warped_pass=false"] = _in_child(run_ours, source, target, target,
                                                           {"warped_pass": False, **overrides})
-        if "two-way" in args.methods:
-            results["ours, --set two_way=true"] = _in_child(run_ours, source, target, target,
-                                                   {"two_way": True, **overrides})
+        if "accurate" in args.methods:  # the defaults and two-way
+            results["ours, --preset accurate"] = _in_child(run_ours, source, target, target, overrides, "accurate")
         if "lm" in args.methods:  # the fast path before the initialization stage: one run
             results["ours, one run from the rest pose"] = _in_child(
                 run_ours, source, target, target,

@@ -192,7 +192,7 @@ def test_presets_are_data_shipped_with_the_package():
     [options] table of valid fields; ``from_table`` applies one, then changes it."""
     from morphmodes_vol.options import PRESETS, preset_description, preset_table
 
-    assert set(PRESETS) == {"default", "fast", "fastest", "paper"}
+    assert set(PRESETS) == {"default", "accurate", "fast", "fastest", "paper"}
     for name in PRESETS:
         assert preset_description(name)
         table = preset_table(name)
@@ -200,6 +200,7 @@ def test_presets_are_data_shipped_with_the_package():
         assert RegistrationOptions.from_table({"preset": name, "seed": 3}) == \
             RegistrationOptions.preset(name).replace(seed=3)
     assert preset_table("default") == {} and preset_table("fast")["quadrature"] == "band"
+    assert RegistrationOptions.preset("accurate") == RegistrationOptions(two_way=True)
     with pytest.raises(OptionError, match="preset 'turbo' is unknown"):
         RegistrationOptions.preset("turbo")
     with pytest.raises(OptionError, match="unknown option"):

@@ -177,8 +177,8 @@ def test_two_way_with_landmarks_judges_by_the_objective_with_them():
 
 
 def test_two_way_grid_is_the_reverse_registrations_grid(monkeypatch):
-    """The reverse registration runs on ``two_way_grid`` nodes; the forward runs and the runs
-    from the correspondences stay on ``grid``."""
+    """The reverse registration runs on ``two_way_grid`` nodes (unset: three quarters of
+    ``grid``); the forward runs and the runs from the correspondences stay on ``grid``."""
     from morphmodes_vol.register import Registration
 
     grids = []
@@ -193,3 +193,6 @@ def test_two_way_grid_is_the_reverse_registrations_grid(monkeypatch):
     r = mm.register(source, target, grid=24, modes=3, two_way=True, two_way_grid=16)
     assert grids == [24, 16]
     assert r.metrics["two_way"]["kept"] in r.metrics["two_way"]["objectives"]
+    grids.clear()  # unset: three quarters of the grid
+    mm.register(source, target, grid=24, modes=3, two_way=True)
+    assert grids == [24, 18]
