@@ -209,7 +209,7 @@ class RegistrationOptions:
     two_way : bool
         Also register the target onto the source and run from the correspondences it
         implies (:mod:`morphmodes_vol.two_way`); the lowest objective is kept. Needs a
-        target mesh; about twice the time.
+        target mesh; 1.7-2.4x the time. On in the ``accurate`` preset.
     two_way_iterations : int
         Levenberg-Marquardt steps of each run from the reverse correspondences.
     two_way_grid : int or None
