@@ -25,10 +25,13 @@ that later modes never leave. Here, before Algorithm 1:
    centroid (``dx = [w]_x (x - c) + s (x - c) + t``) comes from the field's gradient; the
    damping is measured by the vertices' mean squared displacement; a step is applied
    exactly (Rodrigues rotation, ``exp(s)`` scale) and kept when the true energy decreases.
-5. *Choice, with an orientation prior.* The unrotated start's alignment is kept unless a
-   rotated start reaches an energy below ``init_switch`` times its energy: on an
-   articulated body the lowest rigid energy is often a head-to-tail flip, close in energy
-   to the right orientation. The
+5. *Choice.* The refined start of lowest energy, unless its surface lies where the
+   unrotated start's does (every vertex within one coarse spacing of it: a symmetry of the shape,
+   whose energies tie only up to the grid's sampling, or the same pose reached from another
+   orientation); then the unrotated one, whose vertex map does not turn the shape. When the
+   chosen start is a rotated one, the unrotated one goes on beside it
+   (:meth:`InitialAlignment.start_indices`): the rigid energy does not tell an articulated
+   body's orientation, Algorithm 1's runs compare the two. The
    chosen map ``x -> A [x; 1]`` is handed to Algorithm 1 as the coefficients of mode 0 (the
    constant mode, so ``T_0 = (A - [I 0]) / w_0``), which then goes on with a full affine
    map and the deformation modes from there.
@@ -112,6 +115,17 @@ class InitialAlignment:
     def apply(self, X: np.ndarray) -> np.ndarray:
         """``(n, 3)`` points mapped."""
         return X @ self.matrix[:, :3].T + self.matrix[:, 3]
+
+    def start_indices(self) -> dict:
+        """The refined starts Algorithm 1 starts from, label -> index: ``"aligned"`` (the
+        chosen one) and, when that is a rotated start, ``"unrotated"`` (index 0). The coarse
+        rigid energy does not tell an articulated body's orientation (a head-to-tail flip
+        fits nearly as well), so both orientations go on, to the runs' choice
+        (docs/decisions/0010-no-orientation-prior.md)."""
+        starts = {"aligned": self.chosen}
+        if self.chosen != 0 and 0 in self.refined_matrices:
+            starts["unrotated"] = 0
+        return starts
 
     def summary(self) -> dict:
         """Plain numbers for reports."""
@@ -537,17 +551,23 @@ def _refine_candidates(refine, order: list, starts: list, evaluations: list, pro
     return refined, finals, spent
 
 
-def _orientation_prior(order: list, refined: dict, switch: float) -> int:
-    """The refined start kept: the unrotated one (``order[0]``) unless another reaches an
-    energy lower by the factor ``switch`` (on articulated poses the SDF energy alone often
-    prefers a wrong orientation)."""
-    best_other = min(order[1:], key=lambda i: refined[i], default=None)
-    if best_other is None:
+def _chosen(order: list, refined: dict, finals: dict, field: RigidSourceField, X0: np.ndarray,
+            spacing: float) -> int:
+    """The refined start kept: the one of lowest energy, unless it places the source's
+    surface where the unrotated start (``order[0]``) places it (every vertex within
+    ``spacing`` of that surface: a symmetry of the shape, or the same pose reached from
+    another orientation). Then the unrotated start is kept: its vertex map does not
+    turn the shape, and a symmetric shape's energies tie only up to the grid's sampling."""
+    best = min(order, key=lambda i: (not np.isfinite(refined[i]), refined[i] if np.isfinite(refined[i]) else 0.0))
+    if best == order[0] or not np.isfinite(refined[best]):
         return order[0]
-    log.info("orientation prior: best rotated start %.4g, unrotated %.4g (ratio %.2f, switch "
-             "below %.2f)", refined[best_other], refined[order[0]],
-             refined[best_other] / max(refined[order[0]], 1e-300), switch)
-    return best_other if refined[best_other] < switch * refined[order[0]] else order[0]
+    S0, Sb = finals[order[0]], finals[best]
+    P = (Sb.apply(X0) - S0.t) @ S0.R / S0.scale  # the best start's vertices, in the rest frame of the unrotated one
+    apart = float(np.max(np.abs(field.sample(P)[0]))) * S0.scale
+    log.info("initial alignment: best start %d, energy %.4g (unrotated %.4g, ratio %.2f), its surface "
+             "%.3g from the unrotated one's (%.3g: the same)", best, refined[best], refined[order[0]],
+             refined[best] / max(refined[order[0]], 1e-300), apart, spacing)
+    return order[0] if apart < spacing else best
 
 
 def align(
@@ -560,7 +580,6 @@ def align(
     kind: str = "similarity",
     keep: int = 4,
     iterations: int = 30,
-    switch: float = 0.5,
     sign: str = "raycast",
     progress: Callable[[str], None] | None = None,
 ) -> InitialAlignment:
@@ -584,9 +603,6 @@ def align(
         Candidates refined after screening.
     iterations : int
         Levenberg-Marquardt steps per refined candidate.
-    switch : float
-        A rotated start replaces the unrotated one only when its refined energy is below
-        ``switch`` times the unrotated one's (``1``: plain lowest energy; ``0``: never).
     sign : {"raycast", "winding"}
         Inside test of the source.
     progress : callable, optional
@@ -623,7 +639,7 @@ def align(
     refine = partial(_refine, field, Q, g, weights, X0, similarity=kind == "similarity", iterations=iterations)
     refined, finals, n = _refine_candidates(refine, order, starts, evaluations, progress)
     spent += n
-    best_i = _orientation_prior(order, refined, switch)
+    best_i = _chosen(order, refined, finals, field, X0, spacing)
     best = finals[best_i]
     result = InitialAlignment(
         matrix=best.matrix(), scale=float(best.scale), energy=refined[best_i],

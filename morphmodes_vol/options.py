@@ -143,8 +143,6 @@ class RegistrationOptions:
     init_candidates : int
         Orientations refined: the unrotated one and the best ``init_candidates - 1`` of the
         28 screened.
-    init_switch : float
-        A rotated start wins only below this times the unrotated start's energy.
     init_lm_iterations_per_stage : int
         ``lm_iterations_per_stage`` of the run from the aligned start.
     init_keep_rest : bool
@@ -252,7 +250,6 @@ class RegistrationOptions:
     initialization: Initialization = "rigid"
     init_grid: int = 32
     init_candidates: int = 6
-    init_switch: float = 0.6
     init_keep_rest: bool = True
     select_energy_factor: float = 10.0
     start_check_modes: int = 4
@@ -440,7 +437,7 @@ _CHECKS = {
     "initialization": (_one_of(INITIALIZATIONS), f"one of {INITIALIZATIONS}"),
     "init_grid": (_int(8, 256), "an integer in [8, 256]"),
     "init_candidates": (_int(1, 29), "an integer in [1, 29]"),
-    "init_switch": (_real(0, 1), "a float in [0, 1]"), "init_lm_iterations_per_stage": _COUNT,
+    "init_lm_iterations_per_stage": _COUNT,
     "init_keep_rest": _BOOL, "coarse_starts": _BOOL,
     "select_energy_factor": (_real(1), "a finite number >= 1"), "start_check_modes": _COUNT,
     "start_merge_distance": (_real(0), "a finite non-negative float"),

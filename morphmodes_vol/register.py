@@ -374,7 +374,7 @@ class Registration:
         Q = coarse.points()
         weight = coarse.cell_volume if self.confidence is None else coarse.cell_volume * self.confidence.sample(Q)
         return align(self.X0, self.source_sdf_faces, Q, self.sample_target(Q), weight,
-                     kind=o.initialization, keep=o.init_candidates, switch=o.init_switch,
+                     kind=o.initialization, keep=o.init_candidates,
                      sign=o.source_sign)
 
     def start_coefficients(self, matrix: np.ndarray) -> np.ndarray:
@@ -513,7 +513,9 @@ class Registration:
 
     def _starts(self) -> tuple[list, list, dict, float]:
         """The starts of the runs (``(label, T0 or None, options)``: the rest pose, the SDF
-        alignment, as the options ask), the initialization's other orientations
+        alignment and, when that turned the source, the unrotated alignment
+        (:meth:`~morphmodes_vol.initialize.InitialAlignment.start_indices`), as the options
+        ask), the initialization's other orientations
         for the warped pass (``(label, T0)``, ``warped_candidates``), the initialization's
         report and the seconds spent."""
         t = time.perf_counter()
@@ -525,10 +527,12 @@ class Registration:
                 lm_iterations_per_stage=self.options.init_lm_iterations_per_stage)
             alignment = self.initial_alignment()
             init_summary = alignment.summary()
-            aligned = [("aligned", self.start_coefficients(alignment.matrix), aligned_options)]
+            own = alignment.start_indices()
+            aligned = [(label, self.start_coefficients(alignment.refined_matrices[i]),
+                        aligned_options) for label, i in own.items()]
             if self.options.warped_pass and self.options.warped_candidates:
                 candidates = [(f"candidate {i}", self.start_coefficients(M))
-                              for i, M in alignment.refined_matrices.items() if i != alignment.chosen]
+                              for i, M in alignment.refined_matrices.items() if i not in own.values()]
             starts = starts + aligned if self.options.init_keep_rest else aligned
         return starts, candidates, init_summary, time.perf_counter() - t
 

@@ -184,8 +184,8 @@ def _to_refine(energies: dict, start_labels: list) -> list:
 
 
 def _kept(o, ran: dict, runs: list, chosen: list, start_labels: list) -> str:
-    """The label of the result kept among the runs' (``ran``) and the refined ones, by the
-    orientation prior, as the initialization's (``init_switch``): a result from another
+    """The label of the result kept among the runs' (``ran``) and the refined ones, by an
+    orientation prior: a result from another
     orientation is kept only when its objective is below ``warped_candidate_ratio`` times
     every result from the starts' (a shape with a symmetry ties across orientations)."""
     own = {**ran, **{r.label: r.energy for r, label in zip(runs, chosen) if label in start_labels}}

@@ -133,7 +133,7 @@ def test_align_recovers_a_large_rotation_and_translation():
     Y = X @ R.T + t
     grid, Q = _pair_grid(X, Y)
     g = signed_distance(Y, F, Q).value
-    al = align(X, F, Q, g, grid.cell_volume, kind="rigid", keep=6, switch=1.0)
+    al = align(X, F, Q, g, grid.cell_volume, kind="rigid", keep=6)
     assert rotation_angle(al.rotation.T @ R) < 10.0
     assert np.sqrt(np.mean(np.sum((al.apply(X) - Y) ** 2, axis=1))) < 0.03 * np.linalg.norm(np.ptp(Y, 0))
     assert al.energy < 0.05 * al.rest_energy
@@ -158,15 +158,35 @@ def test_align_of_a_translated_copy_is_the_translation_and_similarity_finds_the_
     assert rigid.scale == 1.0 and sim.energy < 0.2 * rigid.energy
 
 
-def test_switch_zero_keeps_the_unrotated_start():
+def test_a_symmetric_shape_keeps_the_unrotated_start():
+    """A capsule turned about its axis, or end over end, is the same surface: the rotated
+    starts tie with the unrotated one up to the grid's sampling, and the unrotated start is
+    kept (its vertex map does not turn the shape) even where a rotated one is lower."""
+    from morphmodes_vol.primitives import capsule
+
+    X, F = capsule(count=(12, 16))
+    Y = X + [0.05, -0.03, 0.02]
+    grid, Q = _pair_grid(X, Y, res=20)
+    g = signed_distance(Y, F, Q).value
+    al = align(X, F, Q, g, grid.cell_volume, kind="rigid", keep=6)
+    assert al.chosen == 0 and al.start_indices() == {"aligned": 0}  # one start, not two
+    assert set(al.refined_energies) >= {0} and len(al.refined_energies) == 6
+    assert np.allclose(al.apply(X), Y, atol=0.02)
+
+
+def test_the_lowest_energy_start_wins_when_it_places_the_surface_elsewhere():
+    """No prior for the unrotated start: a blob turned by 162 degrees is recovered from a
+    rotated start whatever the ratio of the energies; the unrotated start goes on beside
+    it, for Algorithm 1's runs to compare."""
     X, F = asymmetric_blob()
     R = Rotation.from_rotvec([0, 0, np.pi * 0.9]).as_matrix()
     Y = X @ R.T
     grid, Q = _pair_grid(X, Y)
     g = signed_distance(Y, F, Q).value
-    al = align(X, F, Q, g, grid.cell_volume, kind="rigid", keep=4, switch=0.0)
-    assert al.chosen == 0
-    assert set(al.refined_energies) >= {0} and len(al.refined_energies) == 4
+    al = align(X, F, Q, g, grid.cell_volume, kind="rigid", keep=4)
+    assert al.chosen != 0 and al.refined_energies[al.chosen] < al.refined_energies[0]
+    assert rotation_angle(al.rotation.T @ R) < 10.0
+    assert al.start_indices() == {"aligned": al.chosen, "unrotated": 0}
 
 
 @pytest.mark.parametrize("optimizer", ["paper", "lm"])
@@ -188,8 +208,8 @@ def test_registration_with_initialization_recovers_a_turned_target(optimizer):
 def test_initialization_options_are_checked():
     with pytest.raises(mm.OptionError):
         mm.RegistrationOptions(initialization="pca")
-    with pytest.raises(mm.OptionError):
-        mm.RegistrationOptions(init_switch=1.5)
+    with pytest.raises(TypeError, match="init_switch"):  # removed: see _chosen
+        mm.RegistrationOptions(init_switch=0.6)
     with pytest.raises(mm.OptionError):
         mm.RegistrationOptions(init_candidates=0)
     with pytest.raises(mm.OptionError, match="coarse_starts"):
@@ -233,21 +253,26 @@ def test_select_start_prefers_the_least_distorted_of_the_runs_that_fit():
     assert select_start([a, c], 10.0) is a           # a non-finite energy is never chosen
 
 
-def test_two_starts_are_run_and_reported():
+def test_the_starts_are_run_and_reported():
+    """The rest pose, the aligned start and, when that turned the source, the unrotated
+    alignment: each runs and is reported."""
     X, F = asymmetric_blob()
     Y = bend(X, 0.5, axis=2, towards=0)
     opts = mm.RegistrationOptions(grid=16, modes=2, optimizer="lm", quadrature="band",
                                   initialization="rigid", start_check_modes=99, warped_pass=False)
-    r = mm.register((X, F), (Y, F), opts, ground_truth=Y)
+    reg = mm.Registration((X, F), (Y, F), opts)
+    r = reg.run(ground_truth=Y)
+    own = list(reg.initial_alignment().start_indices())
+    assert own[0] == "aligned" and set(own) <= {"aligned", "unrotated"}
     starts = r.metrics["starts"]
-    assert [s["start"] for s in starts] == ["rest", "aligned"]
-    assert r.metrics["start"] in ("rest", "aligned")
+    assert [s["start"] for s in starts] == ["rest", *own]
+    assert r.metrics["start"] in ("rest", *own)
     assert r.evaluations == sum(s["evaluations"] for s in starts) > r.history.evaluations
     chosen = next(s for s in starts if s["start"] == r.metrics["start"])
     assert chosen["edge_strain"] == r.metrics["edge_strain"]
     assert "init_rotation_deg" in r.metrics
     one = mm.register((X, F), (Y, F), opts.replace(init_keep_rest=False))
-    assert [s["start"] for s in one.metrics["starts"]] == ["aligned"]
+    assert [s["start"] for s in one.metrics["starts"]] == own
     none = mm.register((X, F), (Y, F), opts.replace(initialization="none"))
     assert [s["start"] for s in none.metrics["starts"]] == ["rest"]
 
@@ -299,12 +324,12 @@ def test_align_is_the_same_with_the_source_field_queried_everywhere(monkeypatch)
     Y = X @ R.T + [0.3, -0.2, 0.1]
     grid, Q = _pair_grid(X, Y)
     g = signed_distance(Y, F, Q).value
-    masked = align(X, F, Q, g, grid.cell_volume, kind="rigid", keep=6, switch=1.0)
+    masked = align(X, F, Q, g, grid.cell_volume, kind="rigid", keep=6)
     everywhere = RigidSourceField.from_mesh.__func__
     monkeypatch.setattr(init.RigidSourceField, "from_mesh",
                         classmethod(lambda cls, X0, F_, grid_, sign="raycast", near=None:
                                     everywhere(cls, X0, F_, grid_, sign)))
-    full = align(X, F, Q, g, grid.cell_volume, kind="rigid", keep=6, switch=1.0)
+    full = align(X, F, Q, g, grid.cell_volume, kind="rigid", keep=6)
     np.testing.assert_array_equal(masked.matrix, full.matrix)
     assert masked.refined_energies == full.refined_energies and masked.evaluations == full.evaluations
     assert masked.field_nodes < full.field_nodes
@@ -534,7 +559,7 @@ def test_the_coarse_pass_result_is_kept_by_the_rule_among_starts():
     reg = mm.Registration((X, F), (Y, F), opts)
     out = reg.run()
     labels = [s["start"] for s in out.metrics["starts"]]
-    assert labels == ["rest (coarse)", "aligned (coarse)"]
+    assert labels == [f"{label} (coarse)" for label in ("rest", *reg.initial_alignment().start_indices())]
     assert all(s["energy_grid"] == "fine" for s in out.metrics["starts"])
     from morphmodes_vol.runs import StartRun, select_start
 
@@ -554,19 +579,21 @@ def test_the_coarse_pass_result_is_kept_by_the_rule_among_starts():
 def test_the_fast_setting_is_the_defaults_on_the_band_without_the_other_orientations():
     """``RegistrationOptions.fast()``: the defaults but ``grid``, ``quadrature`` and
     ``warped_candidates``; a registration with it has the coarse runs from the rest pose and
-    the aligned start, and its warped pass starts from those alone."""
+    the initialization's starts, and its warped pass starts from those alone."""
     fast, default = mm.RegistrationOptions.fast(), mm.RegistrationOptions()
     assert fast.grid < default.grid and not fast.warped_candidates
     assert (fast.quadrature, default.quadrature) == ("band", "full")
     assert fast.replace(grid=default.grid, quadrature="full", warped_candidates=True) == default
     X, F = asymmetric_blob()
     Y = bend(X, 0.6, axis=2, towards=0) + [0.03, 0.0, 0.0]
-    out = mm.register((X, F), (Y, F), fast.replace(grid=48, modes=3, warped_descriptors=False))
+    reg = mm.Registration((X, F), (Y, F), fast.replace(grid=48, modes=3, warped_descriptors=False))
+    out = reg.run()
+    own = ("rest", *reg.initial_alignment().start_indices())
     runs = [s["start"] for s in out.metrics["starts"]]
-    assert runs[:2] == ["rest (coarse)", "aligned (coarse)"]
-    assert all(not label.startswith(("rest", "aligned")) or label.endswith(" (coarse)") for label in runs)
+    assert runs[:len(own)] == [f"{label} (coarse)" for label in own]
+    assert all(not label.startswith(own) or label.endswith(" (coarse)") for label in runs)
     warped = out.metrics["warped_pass"]
-    assert set(warped["field_energies"]) | set(warped["pruned"]) == {"rest", "aligned"}
+    assert set(warped["field_energies"]) | set(warped["pruned"]) == set(own)
     assert out.metrics["final_sdf_rms"] < 0.5 * out.metrics["initial_sdf_rms"]
 
 

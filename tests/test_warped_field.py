@@ -271,12 +271,13 @@ def test_warped_candidates_and_the_choice_by_field_energy():
     w = r.metrics["warped_pass"]
     alignment = reg.initial_alignment()
     np.testing.assert_array_equal(alignment.refined_matrices[alignment.chosen], alignment.matrix)
-    others = {f"candidate {i}" for i in alignment.refined_matrices if i != alignment.chosen}
+    own = alignment.start_indices()
+    others = {f"candidate {i}" for i in alignment.refined_matrices if i not in own.values()}
     energies = w["field_energies"]
-    assert set(energies) == {"rest", "aligned"} | (others - set(w["skipped_candidates"]))
+    assert set(energies) == {"rest", *own} | (others - set(w["skipped_candidates"]))
     assert len(energies) > 3
     # a skipped candidate maps the source within start_merge_distance of a start taken
-    taken = [np.zeros((1, 3, 4)), reg.start_coefficients(alignment.matrix)]
+    taken = [np.zeros((1, 3, 4))] + [reg.start_coefficients(alignment.refined_matrices[i]) for i in own.values()]
     taken += [reg.start_coefficients(alignment.refined_matrices[int(k.split()[1])])
               for k in energies if k.startswith("candidate")]
     for k in w["skipped_candidates"]:
@@ -286,7 +287,7 @@ def test_warped_candidates_and_the_choice_by_field_energy():
     lowest = min(energies, key=energies.get)
     assert w["refined_starts"][0] == lowest
     if lowest.startswith("candidate"):  # and the best start's
-        assert w["refined_starts"][1] == min(("rest", "aligned"), key=energies.get)
+        assert w["refined_starts"][1] == min(("rest", *own), key=energies.get)
     refined = [k for k in w["objectives"] if k.startswith("warped: ")]
     assert refined == ["warped: " + k for k in w["refined_starts"]]
     _check_kept(w, next(iter(w["objectives"])), options.warped_candidate_ratio)
