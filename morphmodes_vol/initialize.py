@@ -52,6 +52,7 @@ from typing import Callable
 import numpy as np
 
 from .optimize.gauss_newton import NormalEquations, lm_solve
+from .runs import ascending
 from .sdf.grid import Grid, trilinear_sample
 from .sdf.source import _scene, inside, signed_distance
 
@@ -558,7 +559,7 @@ def _chosen(order: list, refined: dict, finals: dict, field: RigidSourceField, X
     ``spacing`` of that surface: a symmetry of the shape, or the same pose reached from
     another orientation). Then the unrotated start is kept: its vertex map does not
     turn the shape, and a symmetric shape's energies tie only up to the grid's sampling."""
-    best = min(order, key=lambda i: (not np.isfinite(refined[i]), refined[i] if np.isfinite(refined[i]) else 0.0))
+    best = ascending({i: refined[i] for i in order})[0]
     if best == order[0] or not np.isfinite(refined[best]):
         return order[0]
     S0, Sb = finals[order[0]], finals[best]
