@@ -31,7 +31,10 @@ that later modes never leave. Here, before Algorithm 1:
    orientation); then the unrotated one, whose vertex map does not turn the shape. When the
    chosen start is a rotated one, the unrotated one goes on beside it
    (:meth:`InitialAlignment.start_indices`): the rigid energy does not tell an articulated
-   body's orientation, Algorithm 1's runs compare the two. The
+   body's orientation, Algorithm 1's runs compare the two. The other refined starts
+   that place the surface where a start does, with another vertex map (a symmetry), are
+   its ``repeats``; the rest are the warped pass's candidates
+   (:meth:`InitialAlignment.candidate_indices`). The
    chosen map ``x -> A [x; 1]`` is handed to Algorithm 1 as the coefficients of mode 0 (the
    constant mode, so ``T_0 = (A - [I 0]) / w_0``), which then goes on with a full affine
    map and the deformation modes from there.
@@ -93,6 +96,10 @@ class InitialAlignment:
     refined_matrices : dict of int to (3, 4) float64
         The map each refined candidate reached (keys as ``refined_energies``; the chosen one
         is ``matrix``).
+    repeats : tuple of int
+        The refined candidates, other than the starts, that place the source's surface where
+        a start (:meth:`start_indices`) places it with another vertex map: a symmetry of the
+        shape (:meth:`candidate_indices` leaves them out).
     """
 
     matrix: np.ndarray
@@ -107,6 +114,7 @@ class InitialAlignment:
     seconds: float
     field_nodes: int = 0
     refined_matrices: dict = dataclass_field(default_factory=dict)
+    repeats: tuple = ()
 
     @property
     def rotation(self) -> np.ndarray:
@@ -127,6 +135,13 @@ class InitialAlignment:
         if self.chosen != 0 and 0 in self.refined_matrices:
             starts["unrotated"] = 0
         return starts
+
+    def candidate_indices(self) -> list:
+        """The refined candidates that are other orientations than the starts, in the order
+        they were refined: neither a start nor one of its ``repeats``. The warped pass starts from them
+        (``warped_candidates``), and its lowest objective decides among all results."""
+        taken = set(self.start_indices().values()) | set(self.repeats)
+        return [i for i in self.refined_matrices if i not in taken]
 
     def summary(self) -> dict:
         """Plain numbers for reports."""
@@ -552,23 +567,41 @@ def _refine_candidates(refine, order: list, starts: list, evaluations: list, pro
     return refined, finals, spent
 
 
+def _apart(field: RigidSourceField, X0: np.ndarray, S: "Similarity", T: "Similarity") -> float:
+    """How far the source's vertices placed by ``S`` lie from its surface placed by ``T``:
+    the largest distance (normalized frame). Below the coarse spacing, the two place the
+    surface alike: a symmetry of the shape, or the same pose reached from two orientations."""
+    P = (S.apply(X0) - T.t) @ T.R / T.scale  # S's vertices, in the rest frame of T
+    return float(np.max(np.abs(field.sample(P)[0]))) * T.scale
+
+
 def _chosen(order: list, refined: dict, finals: dict, field: RigidSourceField, X0: np.ndarray,
             spacing: float) -> int:
     """The refined start kept: the one of lowest energy, unless it places the source's
-    surface where the unrotated start (``order[0]``) places it (every vertex within
-    ``spacing`` of that surface: a symmetry of the shape, or the same pose reached from
-    another orientation). Then the unrotated start is kept: its vertex map does not
-    turn the shape, and a symmetric shape's energies tie only up to the grid's sampling."""
+    surface where the unrotated start (``order[0]``) places it (:func:`_apart` below
+    ``spacing``). Then the unrotated start is kept: its vertex map does not turn the
+    shape, and a symmetric shape's energies tie only up to the grid's sampling."""
     best = ascending({i: refined[i] for i in order})[0]
     if best == order[0] or not np.isfinite(refined[best]):
         return order[0]
-    S0, Sb = finals[order[0]], finals[best]
-    P = (Sb.apply(X0) - S0.t) @ S0.R / S0.scale  # the best start's vertices, in the rest frame of the unrotated one
-    apart = float(np.max(np.abs(field.sample(P)[0]))) * S0.scale
+    apart = _apart(field, X0, finals[best], finals[order[0]])
     log.info("initial alignment: best start %d, energy %.4g (unrotated %.4g, ratio %.2f), its surface "
              "%.3g from the unrotated one's (%.3g: the same)", best, refined[best], refined[order[0]],
              refined[best] / max(refined[order[0]], 1e-300), apart, spacing)
     return order[0] if apart < spacing else best
+
+
+def _repeats(order: list, starts: set, finals: dict, field: RigidSourceField, X0: np.ndarray,
+             spacing: float) -> tuple:
+    """The refined candidates of ``order``, other than ``starts``, that place the surface
+    where one of ``starts`` does (:func:`_apart` below ``spacing``) with another vertex map
+    (the vertices' root mean square distance above ``spacing``): a symmetry of the shape.
+    One that places the vertices too where a start does is the same pose reached from
+    another orientation; it is not a repeat and starts the warped pass as before."""
+    def symmetric(S, T):
+        moved = float(np.sqrt(np.mean(np.sum((S.apply(X0) - T.apply(X0)) ** 2, axis=1))))
+        return moved > spacing and _apart(field, X0, S, T) < spacing
+    return tuple(i for i in order if i not in starts and any(symmetric(finals[i], finals[j]) for j in starts))
 
 
 def align(
@@ -642,12 +675,13 @@ def align(
     spent += n
     best_i = _chosen(order, refined, finals, field, X0, spacing)
     best = finals[best_i]
+    repeats = _repeats(order, {order[0], best_i}, finals, field, X0, spacing)
     result = InitialAlignment(
         matrix=best.matrix(), scale=float(best.scale), energy=refined[best_i],
         rest_energy=float(rest.energy), candidates=len(starts), chosen=best_i,
         screened_energies=screened, refined_energies=refined, evaluations=spent,
         seconds=time.perf_counter() - t0, field_nodes=field.nodes,
-        refined_matrices={i: S.matrix() for i, S in finals.items()},
+        refined_matrices={i: S.matrix() for i, S in finals.items()}, repeats=repeats,
     )
     log.info("initial alignment: candidate %d of %d, rotation %.1f deg, scale %.3f, coarse energy "
              "%.4g (rest pose %.4g), %d evaluations of the source field (%d nodes, %.2fs) in %.2fs",

@@ -184,9 +184,6 @@ class RegistrationOptions:
         Levenberg-Marquardt steps on Eq. (3) refining a field result (all modes, one stage).
     warped_candidates : bool
         Also start the field from the initialization's other orientations.
-    warped_candidate_ratio : float
-        A result from another orientation is kept only below this times every result from
-        the starts (an orientation prior), in (0, 1].
     warped_prune_modes : int
         Every field start runs to this many modes; only those within ``warped_prune_ratio``
         of the lowest field energy go on (``0``, or ``modes`` or more: every start).
@@ -267,7 +264,6 @@ class RegistrationOptions:
     warped_iterations_per_stage: int = 3
     warped_polish_iterations: int = 30
     warped_candidates: bool = True
-    warped_candidate_ratio: float = 0.95
     warped_prune_modes: int = 8
     warped_prune_ratio: float = 2.0
     warped_hops: int = 1
@@ -447,7 +443,7 @@ _CHECKS = {
     "isometry_weight": _NONNEGATIVE, "isometry_tolerance": _NONNEGATIVE,
     "warped_pass": _BOOL, "field_only": _BOOL, "overlap_field": _BOOL,
     "warped_band_cells": _POSITIVE, "warped_iterations_per_stage": _COUNT,
-    "warped_polish_iterations": _COUNT, "warped_candidates": _BOOL, "warped_candidate_ratio": _UNIT,
+    "warped_polish_iterations": _COUNT, "warped_candidates": _BOOL,
     "warped_prune_modes": (_int(0), "a non-negative integer (0: off)"),
     "warped_prune_ratio": (_real(1), "a float of at least 1"),
     "warped_hops": (_int(0), "a non-negative integer (0: off)"), "warped_hop_iterations": _COUNT,

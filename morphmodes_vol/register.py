@@ -531,8 +531,8 @@ class Registration:
             aligned = [(label, self.start_coefficients(alignment.refined_matrices[i]),
                         aligned_options) for label, i in own.items()]
             if self.options.warped_pass and self.options.warped_candidates:
-                candidates = [(f"candidate {i}", self.start_coefficients(M))
-                              for i, M in alignment.refined_matrices.items() if i not in own.values()]
+                candidates = [(f"candidate {i}", self.start_coefficients(alignment.refined_matrices[i]))
+                              for i in alignment.candidate_indices()]
             starts = starts + aligned if self.options.init_keep_rest else aligned
         return starts, candidates, init_summary, time.perf_counter() - t
 

@@ -154,7 +154,10 @@ def warped_pass(reg: "Registration", starts, forward: "StartRun", progress, cand
             for label in chosen]
     ran = {} if forward is None else {forward.label: reg.runner.full_grid_objective(forward)}  # field_only: no runs
     compared = {**ran, **{r.label: r.energy for r in runs}}
-    kept = _kept(o, ran, runs, chosen, start_labels)
+    # the lowest objective, the runs' result first among ties, a NaN one last; a candidate
+    # that repeats a start's placement (a symmetry of the shape) never reached the field
+    # (InitialAlignment.candidate_indices), so a tie across a symmetry cannot turn the result
+    kept = ascending(compared)[0]
     best = next((r for r in runs if r.label == kept), min(
         runs, key=lambda r: r.energy if np.isfinite(r.energy) else np.inf))
     log.info("warped rest field: objective %s: kept the %s result",
@@ -181,22 +184,6 @@ def _to_refine(energies: dict, start_labels: list) -> list:
     if chosen[-1] not in start_labels:  # a candidate first: the best start's too
         chosen += ascending({k: energies[k] for k in start_labels if k in energies})[:1]
     return list(dict.fromkeys(chosen))
-
-
-def _kept(o, ran: dict, runs: list, chosen: list, start_labels: list) -> str:
-    """The label of the result kept among the runs' (``ran``) and the refined ones, by an
-    orientation prior: a result from another
-    orientation is kept only when its objective is below ``warped_candidate_ratio`` times
-    every result from the starts' (a shape with a symmetry ties across orientations)."""
-    own = {**ran, **{r.label: r.energy for r, label in zip(runs, chosen) if label in start_labels}}
-    other = {r.label: r.energy for r, label in zip(runs, chosen) if label not in start_labels}
-    kept = ascending(own)[0]  # the forward result first among ties; a NaN one last
-    if other:
-        best_other = ascending(other)[0]
-        bar = o.warped_candidate_ratio * own[kept]
-        if np.isfinite(other[best_other]) and not other[best_other] >= bar:
-            kept = best_other
-    return kept
 
 
 def _hops(reg: "Registration", fields: "WarpedFields", current: "StartRun", objective: float, options,

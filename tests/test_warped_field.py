@@ -10,9 +10,11 @@ from scipy.spatial.transform import Rotation
 
 import morphmodes_vol as mm
 from morphmodes_vol.eigenbasis import LBSBasis, mesh_skinning_weights
+from morphmodes_vol.initialize import rotation_angle
 from morphmodes_vol.isometry import IsometryEnergy
 from morphmodes_vol.primitives import bend, capsule, icosphere
 from morphmodes_vol.warped_field import WarpedRestField, ZeroEnergy
+from test_initialize import asymmetric_blob  # no proper rotation maps it onto itself
 from test_two_way import _bent_pair  # the capsule bent by 60 degrees and stretched
 
 
@@ -141,19 +143,11 @@ def test_a_run_stopped_and_continued_is_the_run_not_stopped():
     assert np.all(np.diff(whole.stage_energies) <= 0)  # each mode lowers the energy, or keeps it
 
 
-def _check_kept(w, forward_label, ratio):
-    """The keeping rule of the warped pass: among the runs' result and the results refined
-    from the starts' field results the lowest objective; a result from a candidate (another
-    orientation) only below ``ratio`` times all of those."""
+def _check_kept(w):
+    """The keeping rule of the warped pass: the lowest objective among the runs' result and
+    the refined results (the runs' result first among ties)."""
     objectives = w["objectives"]
-    own = {k: e for k, e in objectives.items()
-           if k == forward_label or not k.startswith("warped: candidate")}
-    other = {k: e for k, e in objectives.items() if k not in own}
-    best_own = min(own, key=own.get)
-    if other and min(other.values()) < ratio * own[best_own]:
-        assert w["kept_before_hops"] == min(other, key=other.get)
-    else:
-        assert w["kept_before_hops"] == best_own
+    assert w["kept_before_hops"] == min(objectives, key=objectives.get)
     # a candidate refined means the best start was refined too
     if any(k.startswith("candidate") for k in w["refined_starts"]):
         assert set(w["refined_starts"]) & {"rest", "aligned"}
@@ -173,11 +167,12 @@ def test_warped_pass_keeps_the_lower_objective_and_counts_its_work():
     # the defaults: every start and candidate on the field, the lowest field energy refined
     assert options.warped_candidates and "field_objectives" not in w
     assert w["refined_starts"][0] == min(w["field_energies"], key=w["field_energies"].get)
-    assert {"rest", "aligned"} < set(w["field_energies"])
+    candidates = {f"candidate {i}" for i in reg.initial_alignment().candidate_indices()}
+    assert set(w["field_energies"]) | set(w["skipped_candidates"]) == {"rest", "aligned"} | candidates
     # the runs' part is the registration without the pass, judged on the full grid
     assert objectives[plain.metrics["start"]] == pytest.approx(
         reg.objective(reg.normalization.apply(plain.vertices)), rel=1e-12)
-    _check_kept(w, plain.metrics["start"], options.warped_candidate_ratio)
+    _check_kept(w)
     assert reg.objective(reg.normalization.apply(r.vertices)) == pytest.approx(objectives[w["kept"]], rel=1e-9)
     assert r.metrics["start"] == w["kept"] == w["kept_before_hops"] and w["hops"] == []
     runs = r.metrics["starts"]
@@ -259,12 +254,20 @@ def test_a_failed_descriptor_is_logged_and_the_descriptor_hop_skipped(monkeypatc
     np.testing.assert_array_equal(failed.vertices, without.vertices)
 
 
+def _blob_pair():
+    """The asymmetric blob and the blob bent by 60 degrees: the initialization's refined
+    starts include other orientations than the starts and their repeats (a capsule's are
+    all repeats: it is symmetric about its axis and end over end)."""
+    X, F = asymmetric_blob()
+    return (X, F), (bend(X, np.radians(60.0)), F)
+
+
 def test_warped_candidates_and_the_choice_by_field_energy():
     """``warped_candidates`` adds the initialization's other orientations as field starts,
     skipping those that repeat a start; the field result of lowest field energy is refined
     (and the best start's too when that came from a candidate), with no evaluation of the
     objective per field result."""
-    source, target = _bent_pair()
+    source, target = _blob_pair()
     options = mm.RegistrationOptions(grid=24, modes=6, warped_candidates=True)
     reg = mm.Registration(source, target, options)
     r = reg.run(ground_truth=target[0])
@@ -272,7 +275,8 @@ def test_warped_candidates_and_the_choice_by_field_energy():
     alignment = reg.initial_alignment()
     np.testing.assert_array_equal(alignment.refined_matrices[alignment.chosen], alignment.matrix)
     own = alignment.start_indices()
-    others = {f"candidate {i}" for i in alignment.refined_matrices if i not in own.values()}
+    others = {f"candidate {i}" for i in alignment.candidate_indices()}
+    assert set(alignment.refined_matrices) == {*own.values(), *alignment.repeats, *alignment.candidate_indices()}
     energies = w["field_energies"]
     assert set(energies) == {"rest", *own} | (others - set(w["skipped_candidates"]))
     assert len(energies) > 3
@@ -290,7 +294,7 @@ def test_warped_candidates_and_the_choice_by_field_energy():
         assert w["refined_starts"][1] == min(("rest", *own), key=energies.get)
     refined = [k for k in w["objectives"] if k.startswith("warped: ")]
     assert refined == ["warped: " + k for k in w["refined_starts"]]
-    _check_kept(w, next(iter(w["objectives"])), options.warped_candidate_ratio)
+    _check_kept(w)
     assert r.metrics["ground_truth_error"] < 0.2 * r.metrics["identity_error"]
 
 
@@ -298,8 +302,8 @@ def test_field_starts_far_above_the_lowest_stop_early():
     """``warped_prune_modes``: every field start runs to that many modes; only those within
     ``warped_prune_ratio`` of the lowest field energy there go on, to the same results as
     without stopping any (the continuation is exact)."""
-    source, target = _bent_pair()
-    # the bent capsule's field starts all end within 3% of each other: a tight ratio
+    source, target = _blob_pair()
+    # a tight ratio: some field starts stop, others go on
     options = mm.RegistrationOptions(grid=24, modes=10, warped_prune_modes=2, warped_prune_ratio=1.01)
     r = mm.register(source, target, options)
     w = r.metrics["warped_pass"]
@@ -371,22 +375,27 @@ def test_hops_through_the_field_keep_only_a_lower_objective():
         np.testing.assert_allclose(r.vertices, none.vertices, atol=1e-12)
 
 
-def test_a_candidate_that_ties_with_a_start_is_not_kept():
+def test_a_candidate_that_repeats_a_start_does_not_reach_the_field():
     """A capsule bent by 50 degrees is symmetric end over end: the initialization's candidate
-    turned by 180 degrees ties with the rest start (field energy and objective within 0.1%)
-    but maps every vertex to the wrong end; the orientation prior keeps the start's result."""
+    turned by 180 degrees places the surface where the unrotated start does, so its
+    objective would tie with the start's while every vertex lands at the wrong end. It is
+    one of the alignment's repeats and never reaches the warped field; the lowest objective
+    then keeps a result at the right end."""
     V, F = capsule(height=1.2, radius=0.25, count=(16, 16))
     target = bend(V, np.radians(50.0))
-    r = mm.register((V, F), (target, F), grid=32, modes=6, ground_truth=target)
+    reg = mm.Registration((V, F), (target, F), mm.RegistrationOptions(grid=32, modes=6))
+    alignment = reg.initial_alignment()
+    turned = [rotation_angle(alignment.refined_matrices[i][:, :3] / np.cbrt(np.linalg.det(
+        alignment.refined_matrices[i][:, :3]))) for i in alignment.repeats]
+    assert max(turned, default=0.0) > 170.0  # the copy turned end over end is a repeat
+    assert set(alignment.candidate_indices()).isdisjoint(alignment.repeats)
+    assert set(alignment.candidate_indices()).isdisjoint(alignment.start_indices().values())
+    r = reg.run(ground_truth=target)
     w = r.metrics["warped_pass"]
-    assert not w["kept_before_hops"].startswith("warped: candidate")
+    assert not any(f"candidate {i}" in w["field_energies"] for i in alignment.repeats)
     # the right end (the wrong one is above 0.5); a twist about the axis, which the SDF
     # cannot see on a capsule, is left free
     assert r.metrics["ground_truth_error"] < 0.1
-    loose = mm.register((V, F), (target, F), grid=32, modes=6, ground_truth=target, warped_candidate_ratio=1.0)
-    # the tie, lost (and no hop finds the way back to the right end)
-    assert loose.metrics["warped_pass"]["kept_before_hops"].startswith("warped: candidate")
-    assert loose.metrics["ground_truth_error"] > 0.5
 
 
 def test_field_results_are_ranked_with_nan_last():
@@ -406,8 +415,6 @@ def test_warped_pass_options_are_checked_and_on_the_command_line():
         mm.RegistrationOptions(warped_polish_iterations=0)
     with pytest.raises(mm.OptionError, match="warped_candidates"):
         mm.RegistrationOptions(warped_candidates="yes")
-    with pytest.raises(mm.OptionError, match="warped_candidate_ratio"):
-        mm.RegistrationOptions(warped_candidate_ratio=1.5)
     with pytest.raises(mm.OptionError, match="warped_prune_modes"):
         mm.RegistrationOptions(warped_prune_modes=-1)
     with pytest.raises(mm.OptionError, match="warped_prune_ratio"):
