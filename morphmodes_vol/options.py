@@ -191,11 +191,9 @@ class RegistrationOptions:
         See ``warped_prune_modes`` (at least 1).
     warped_hops : int
         Hops from the kept result: the field minimized with all modes, refined on Eq. (3),
-        kept below ``warped_hop_ratio`` times the objective; the next from there (``0``: none).
+        kept when its objective is lower; the next from there (``0``: none).
     warped_hop_iterations : int
         The field's steps in a hop.
-    warped_hop_ratio : float
-        A hop is kept only below this times the objective of the result it left, in (0, 1].
     warped_descriptors : bool
         After the hops, one hop through the field with the heat kernel signatures of both
         meshes as channels (:mod:`morphmodes_vol.descriptors`); needs a target mesh.
@@ -268,7 +266,6 @@ class RegistrationOptions:
     warped_prune_ratio: float = 2.0
     warped_hops: int = 1
     warped_hop_iterations: int = 20
-    warped_hop_ratio: float = 0.99
     warped_descriptors: bool = True
     warped_descriptor_weight: float = 0.004
     two_way: bool = False
@@ -402,7 +399,6 @@ _BOOL = (lambda v: isinstance(v, bool), "True or False")
 _POSITIVE = (_real(0, open_lo=True), "a positive float")
 _NONNEGATIVE = (_real(0), "a non-negative float")
 _COUNT = (_int(1), "a positive integer")
-_UNIT = (_real(0, 1, open_lo=True), "a float in (0, 1]")
 
 #: each option's check and what it expects (the relations between options are checked in
 #: ``RegistrationOptions.__post_init__``)
@@ -447,7 +443,7 @@ _CHECKS = {
     "warped_prune_modes": (_int(0), "a non-negative integer (0: off)"),
     "warped_prune_ratio": (_real(1), "a float of at least 1"),
     "warped_hops": (_int(0), "a non-negative integer (0: off)"), "warped_hop_iterations": _COUNT,
-    "warped_hop_ratio": _UNIT, "warped_descriptors": _BOOL, "warped_descriptor_weight": _NONNEGATIVE,
+    "warped_descriptors": _BOOL, "warped_descriptor_weight": _NONNEGATIVE,
     "two_way": _BOOL, "two_way_iterations": _COUNT,
     "two_way_grid": (_optional(_int(4, 1024)), "None or an integer in [4, 1024]"),
 }

@@ -190,7 +190,7 @@ def _hops(reg: "Registration", fields: "WarpedFields", current: "StartRun", obje
           descriptor_hop: bool, progress, runs: list):
     """Hops through the field's landscape from the kept result ``current`` (``warped_hops``):
     the field's minimum near it with all modes, refined on Eq. (3), kept when its objective
-    is below ``warped_hop_ratio`` times the kept one's, the next hop from there; then, with
+    is below the kept one's, the next hop from there; then, with
     ``warped_descriptors``, one hop through the field with the heat kernel signatures as
     channels. The hops' runs are appended to ``runs``. Returns the result kept, the hops'
     reports, their field runs, the descriptors' report and the seconds spent on them."""
@@ -219,7 +219,7 @@ def _hops(reg: "Registration", fields: "WarpedFields", current: "StartRun", obje
             hop_fields.append(moved)
             run = reg.runner.run([(f"{WARPED_PREFIX}{name} {i + 1}", moved.T, options)], progress)[0]
             runs.append(run)
-            accepted = bool(run.energy < o.warped_hop_ratio * objective)
+            accepted = bool(run.energy < objective)  # no margin (decision 0011)
             hops.append({"start": run.label, "from": current.label, "field_energy": float(moved.energy),
                          "objective": float(run.energy), "accepted": accepted,
                          "field": "descriptors" if hop_field.d0 is not None else "plain"})
