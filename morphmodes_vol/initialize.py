@@ -138,8 +138,9 @@ class InitialAlignment:
 
     def candidate_indices(self) -> list:
         """The refined candidates that are other orientations than the starts, in the order
-        they were refined: neither a start nor one of its ``repeats``. The warped pass starts from them
-        (``warped_candidates``), and its lowest objective decides among all results."""
+        they were refined: neither a start nor one of its ``repeats``. The warped pass
+        starts from them (``warped_candidates``); its lowest objective decides among all
+        results."""
         taken = set(self.start_indices().values()) | set(self.repeats)
         return [i for i in self.refined_matrices if i not in taken]
 
