@@ -132,7 +132,8 @@ def test_field_descriptor_arguments_are_checked():
 
 def test_a_descriptor_hop_follows_the_plain_hops():
     """``warped_descriptors``: after the plain hops, one hop through the field with descriptors
-    from the result they kept, refined on Eq. (3) and kept when its objective is lower; the pass and the plain hops before it are those without descriptors."""
+    from the result they kept, refined on Eq. (3) and kept when its objective is lower; the
+    pass and the plain hops before it are those without descriptors."""
     source, target = _bent_pair()
     options = mm.RegistrationOptions(grid=24, modes=6)
     assert options.warped_descriptors and options.warped_descriptor_weight == 0.004  # the defaults
