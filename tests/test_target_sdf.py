@@ -340,10 +340,14 @@ def test_vdb_registration_close_to_dense(pair):
 
 
 @pytest.mark.vdb
-def test_cli_register_onto_vdb_file(pair, tmp_path, capsys):
+def test_cli_register_onto_vdb_file(tmp_path, capsys):
+    """The CLI's sdf -> .vdb -> register path recovers a bend. The shape has no symmetry: the
+    capsule turns freely about its axis, so its vertex error measures which of equal-energy
+    turns was kept (a hop 0.04% lower in objective turned it, 0.57x the identity's error)."""
     import trimesh
+    from test_warped_field import _blob_pair
 
-    (V, F), (Vt, Ft) = pair
+    (V, F), (Vt, Ft) = _blob_pair()
     trimesh.Trimesh(V, F, process=False).export(tmp_path / "s.obj")
     trimesh.Trimesh(Vt, Ft, process=False).export(tmp_path / "t.obj")
     assert main(["sdf", str(tmp_path / "t.obj"), "-o", str(tmp_path / "t.vdb"), "--resolution", "24"]) == 0
@@ -352,7 +356,7 @@ def test_cli_register_onto_vdb_file(pair, tmp_path, capsys):
                  "--grid", "16", "--modes", "3", "--ground-truth", str(tmp_path / "t.obj"), "--quiet"]) == 0
     report = json.loads((out / "report.json").read_text())
     m = report["metrics"]
-    assert m["ground_truth_error"] < 0.5 * m["identity_error"]
+    assert m["ground_truth_error"] < 0.3 * m["identity_error"]  # 0.13x measured
     assert not (out / "correspondence.npz").exists()
 
 
