@@ -126,8 +126,8 @@ def warped_pass(reg: "Registration", starts, forward: "StartRun", progress, cand
     field (:class:`~morphmodes_vol.warped_field.WarpedRestField`) from every start (and from
     ``candidates``, ``(label, T0)`` pairs: the initialization stage's other orientations with
     ``warped_candidates``; past ``warped_prune_modes`` modes only from those of field energy
-    within ``warped_prune_ratio`` of the lowest), refine the field result of lowest field
-    energy on Eq. (3) (one stage with all modes),
+    within ``warped_prune_ratio`` of the lowest), refine the field results of lowest field
+    energy among the starts and among the candidates on Eq. (3) (one stage with all modes),
     and compare with the ``forward`` run's result by the objective on the full grid
     (``objectives`` and ``kept_before_hops`` in the report); then hop from the kept result
     (:func:`_hops`). Returns the field, the refining runs, the report
@@ -178,12 +178,13 @@ def warped_pass(reg: "Registration", starts, forward: "StartRun", progress, cand
 
 
 def _to_refine(energies: dict, start_labels: list) -> list:
-    """The field results refined on Eq. (3): the one of lowest field energy and, when that
-    came from a candidate (another orientation), the best start's too."""
-    chosen = ascending(energies)[:1]
-    if chosen[-1] not in start_labels:  # a candidate first: the best start's too
-        chosen += ascending({k: energies[k] for k in start_labels if k in energies})[:1]
-    return list(dict.fromkeys(chosen))
+    """The field results refined on Eq. (3): the one of lowest field energy among the starts
+    and the one among the candidates (other orientations), the lower first. Both, whichever
+    is lower: the objective chooses between them, not a near-tie of field energies
+    (decision 0012)."""
+    starts = ascending({k: e for k, e in energies.items() if k in start_labels})[:1]
+    others = ascending({k: e for k, e in energies.items() if k not in start_labels})[:1]
+    return ascending({k: energies[k] for k in starts + others})
 
 
 def _hops(reg: "Registration", fields: "WarpedFields", current: "StartRun", objective: float, options,
