@@ -191,8 +191,9 @@ class RegistrationOptions:
     warped_prune_ratio : float
         See ``warped_prune_modes`` (at least 1).
     warped_hops : int
-        Hops from the kept result: the field minimized with all modes, refined on Eq. (3),
-        kept when its objective is lower; the next from there (``0``: none).
+        Hops from the runs' best result and from the best refined field result (decision
+        0013): the field minimized with all modes, refined on Eq. (3), kept when its
+        objective is lower; the next from there (``0``: none).
     warped_hop_iterations : int
         The field's steps in a hop.
     warped_descriptors : bool

@@ -1,6 +1,7 @@
 """The warped pass (``warped_pass``): the warped rest field minimized from the starts and from
 other orientations, its best results refined on Eq. (3), and hops through the field's
-landscape (plain and with descriptor channels) from the kept result.
+landscape (plain and with descriptor channels) from the best result of the runs and the
+best of the refined ones.
 
 docs/method.md, "The stages of a registration", has the method; :mod:`morphmodes_vol.warped_field`
 the field itself.
@@ -129,9 +130,11 @@ def warped_pass(reg: "Registration", starts, forward: "StartRun", progress, cand
     within ``warped_prune_ratio`` of the lowest), refine the field results of lowest field
     energy among the starts and among the candidates on Eq. (3) (one stage with all modes),
     and compare with the ``forward`` run's result by the objective on the full grid
-    (``objectives`` and ``kept_before_hops`` in the report); then hop from the kept result
-    (:func:`_hops`). Returns the field, the refining runs, the report
-    (``metrics["warped_pass"]``) and the seconds spent on the field (building it and
+    (``objectives`` and ``kept_before_hops`` in the report); then hop (:func:`_hops`) from
+    the lowest objective among the runs' results and from the lowest among the refined
+    ones, and keep the lowest objective after the hops (decision 0013). Returns the field,
+    the refining runs, the report (``metrics["warped_pass"]``; each hop's ``chain``: the
+    result its chain started from) and the seconds spent on the field (building it and
     minimizing it). ``fields``: the field runs made beside Algorithm 1's
     (:func:`warped_fields`, ``overlap_field``), else made here."""
     o = reg.options
@@ -162,9 +165,20 @@ def warped_pass(reg: "Registration", starts, forward: "StartRun", progress, cand
         runs, key=lambda r: r.energy if np.isfinite(r.energy) else np.inf))
     log.info("warped rest field: objective %s: kept the %s result",
              ", ".join(f"{k} {e:.4g}" for k, e in compared.items()), kept)
-    current = best if forward is None or kept != forward.label else forward  # the result of label kept
-    current, hops, hop_fields, descriptors, descriptor_seconds = _hops(
-        reg, fields, current, compared[kept], options, descriptor_hop, progress, runs)
+    # the hops start from the lowest objective among the runs' results and from the lowest
+    # among the refined field results, the lower first; the lowest objective after them is
+    # kept: a near-tie of the two does not decide where the hops explore (decision 0013)
+    of = {r.label: r for r in runs} | ({} if forward is None else {forward.label: forward})
+    best_refined = ascending({r.label: r.energy for r in runs})[:1]
+    heads = ascending({k: compared[k] for k in ascending(ran)[:1] + best_refined})
+    kinds, descriptors, descriptor_seconds = _hop_fields(
+        reg, fields, descriptor_hop and np.isfinite(compared[kept]))
+    ends, hops, hop_fields = {}, [], []
+    for head in heads:
+        current, objective = _hops(reg, kinds, of[head], compared[head], options, progress, runs,
+                                   hops, hop_fields, "" if head == heads[0] else f" from {head}")
+        ends[current.label] = (objective, current)
+    current = ends[ascending({k: e for k, (e, _) in ends.items()})[0]][1]
     report = {"kept": current.label, "kept_before_hops": kept, "objectives": compared,
               "field_energies": energies, "refined_start": best.label[len(WARPED_PREFIX):],
               "refined_starts": chosen, "skipped_candidates": fields.skipped,
@@ -187,49 +201,60 @@ def _to_refine(energies: dict, start_labels: list) -> list:
     return ascending({k: energies[k] for k in starts + others})
 
 
-def _hops(reg: "Registration", fields: "WarpedFields", current: "StartRun", objective: float, options,
-          descriptor_hop: bool, progress, runs: list):
-    """Hops through the field's landscape from the kept result ``current`` (``warped_hops``):
-    the field's minimum near it with all modes, refined on Eq. (3), kept when its objective
-    is below the kept one's, the next hop from there; then, with
-    ``warped_descriptors``, one hop through the field with the heat kernel signatures as
-    channels. The hops' runs are appended to ``runs``. Returns the result kept, the hops'
-    reports, their field runs, the descriptors' report and the seconds spent on them."""
+def _hop_fields(reg: "Registration", fields: "WarpedFields", descriptor_hop: bool):
+    """The fields the hops go through: ``("hop", field, warped_hops)`` and, with
+    ``descriptor_hop``, ``("descriptor hop", field with descriptor channels, 1)`` when the
+    channels can be made (``(name, field, count)``). Returns them, the descriptors' report
+    and the seconds spent on the descriptor field."""
     o = reg.options
-    hops, hop_fields, descriptors, descriptor_seconds = [], [], {}, 0.0
-    chains = [("hop", fields.field, o.warped_hops)]
-    if o.warped_descriptors and not descriptor_hop:
+    kinds, descriptors, seconds = [("hop", fields.field, o.warped_hops)], {}, 0.0
+    if o.warped_descriptors and reg.Y is None:
         log.info("warped_descriptors: a target given as an SDF has no surface for descriptors")
         descriptors = {"skipped": "the target is an SDF, not a mesh"}
-    elif descriptor_hop and np.isfinite(objective):
+    elif descriptor_hop:
         # docs/method.md, "The stages of a registration"
         try:
             made = fields.descriptors
             if isinstance(made, Exception):
                 raise made
-            dfield, grid_nodes, descriptor_seconds = made or descriptor_field(reg, fields.field)
+            dfield, grid_nodes, seconds = made or descriptor_field(reg, fields.field)
         except DESCRIPTOR_ERRORS as exc:
             log.warning("warped_descriptors: no heat kernel signature (%s); no descriptor hop", exc)
             descriptors = {"skipped": f"no heat kernel signature: {exc}"}
         else:
             descriptors = {"channels": int(dfield.d0.shape[1]), "grid_nodes": grid_nodes}
-            chains.append(("descriptor hop", dfield, 1))
-    for name, hop_field, count in chains:
+            kinds.append(("descriptor hop", dfield, 1))
+    return kinds, descriptors, seconds
+
+
+def _hops(reg: "Registration", kinds, current: "StartRun", objective: float, options, progress,
+          runs: list, hops: list, hop_fields: list, suffix: str = ""):
+    """Hops through the field's landscape from the result ``current`` of objective
+    ``objective`` (``warped_hops``): the field's minimum near it with all modes, refined on
+    Eq. (3), kept when its objective is below the kept one's, the next hop from there; then,
+    with ``warped_descriptors``, one hop through the field with the heat kernel signatures as
+    channels (``kinds``, :func:`_hop_fields`). The hops' runs (labelled with ``suffix``) are
+    appended to ``runs``, their reports (``chain``: the label of the result they started
+    from) to ``hops``, their field runs to ``hop_fields``. Returns the result kept and its
+    objective."""
+    o = reg.options
+    chain = current.label
+    for name, hop_field, count in kinds:
         for i in range(count if np.isfinite(objective) else 0):
             moved = hop_field.minimize(current.result.T, o.modes, o.warped_hop_iterations, first_mode=o.modes)
             hop_fields.append(moved)
-            run = reg.runner.run([(f"{WARPED_PREFIX}{name} {i + 1}", moved.T, options)], progress)[0]
+            run = reg.runner.run([(f"{WARPED_PREFIX}{name} {i + 1}{suffix}", moved.T, options)], progress)[0]
             runs.append(run)
             accepted = bool(run.energy < objective)  # no margin (decision 0011)
-            hops.append({"start": run.label, "from": current.label, "field_energy": float(moved.energy),
-                         "objective": float(run.energy), "accepted": accepted,
-                         "field": "descriptors" if hop_field.d0 is not None else "plain"})
+            hops.append({"start": run.label, "from": current.label, "chain": chain,
+                         "field_energy": float(moved.energy), "objective": float(run.energy),
+                         "accepted": accepted, "field": "descriptors" if hop_field.d0 is not None else "plain"})
             log.info("%s from the %s result: field energy %.4g, objective %.4g against %.4g: %s", run.label,
                      current.label, moved.energy, run.energy, objective, "kept" if accepted else "not kept")
             if not accepted:
                 break
             current, objective = run, run.energy
-    return current, hops, hop_fields, descriptors, descriptor_seconds
+    return current, objective
 
 
 def descriptor_channels(reg: "Registration") -> "DescriptorChannels":
