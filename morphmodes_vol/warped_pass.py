@@ -161,16 +161,14 @@ def warped_pass(reg: "Registration", starts, forward: "StartRun", progress, cand
     # that repeats a start's placement (a symmetry of the shape) never reached the field
     # (InitialAlignment.candidate_indices), so a tie across a symmetry cannot turn the result
     kept = ascending(compared)[0]
-    best = next((r for r in runs if r.label == kept), min(
-        runs, key=lambda r: r.energy if np.isfinite(r.energy) else np.inf))
+    refined = ascending({r.label: r.energy for r in runs})[0]  # the lowest objective among the refined
     log.info("warped rest field: objective %s: kept the %s result",
              ", ".join(f"{k} {e:.4g}" for k, e in compared.items()), kept)
     # the hops start from the lowest objective among the runs' results and from the lowest
     # among the refined field results, the lower first; the lowest objective after them is
     # kept: a near-tie of the two does not decide where the hops explore (decision 0013)
     of = {r.label: r for r in runs} | ({} if forward is None else {forward.label: forward})
-    best_refined = ascending({r.label: r.energy for r in runs})[:1]
-    heads = ascending({k: compared[k] for k in ascending(ran)[:1] + best_refined})
+    heads = ascending({k: compared[k] for k in ascending(ran)[:1] + [refined]})
     kinds, descriptors, descriptor_seconds = _hop_fields(
         reg, fields, descriptor_hop and np.isfinite(compared[kept]))
     ends, hops, hop_fields = {}, [], []
@@ -180,7 +178,7 @@ def warped_pass(reg: "Registration", starts, forward: "StartRun", progress, cand
         ends[current.label] = (objective, current)
     current = ends[ascending({k: e for k, (e, _) in ends.items()})[0]][1]
     report = {"kept": current.label, "kept_before_hops": kept, "objectives": compared,
-              "field_energies": energies, "refined_start": best.label[len(WARPED_PREFIX):],
+              "field_energies": energies, "refined_start": refined[len(WARPED_PREFIX):],
               "refined_starts": chosen, "skipped_candidates": fields.skipped,
               "pruned": pruned, "prune_modes": fields.prune_modes if fields.staged else None,
               "field_energies_at_prune": {label: r.energy for label, r in first.items()} if fields.staged else {},
