@@ -17,6 +17,7 @@ from morphmodes_vol.sdf import Grid, signed_distance
 from morphmodes_vol.register import ground_truth_error
 
 from test_energy import _energy_for
+from test_warped_field import _blob_pair
 
 
 def _explicit_jacobian(ev, F, n):
@@ -215,8 +216,6 @@ def test_lm_registers_a_bend_with_few_evaluations():
     """The asymmetric blob bent by 60 degrees. (A bent capsule turns about its axis at an
     equal objective, so its vertex error measures which turn is kept, not the fit: the
     hops from both groups, decision 0013, kept a turn at a lower objective, 0.35x.)"""
-    from test_warped_field import _blob_pair
-
     (V, F), (target, _) = _blob_pair()
     identity = ground_truth_error(V, target)
     r = mm.register((V, F), (target, F), grid=32, modes=6, optimizer="lm", quadrature="band")

@@ -444,8 +444,6 @@ def test_field_only_refines_the_field_alone_and_recovers_a_rigid_motion():
     field result of lowest field energy is refined on Eq. (3) and kept, with nothing to
     compare it with (no objective on the full grid). The field is exact for a rigid motion,
     so a turned and moved blob is recovered to well under 1% of the identity error."""
-    from test_initialize import asymmetric_blob
-
     X, F = asymmetric_blob()
     Y = X @ Rotation.from_rotvec([0.2, 0.4, -0.3]).as_matrix().T + [0.05, -0.03, 0.02]
     options = mm.RegistrationOptions.fastest().replace(grid=32, modes=4)
