@@ -183,8 +183,9 @@ class RegistrationOptions:
     warped_polish_iterations : int
         Levenberg-Marquardt steps on Eq. (3) refining a field result (all modes, one stage).
     warped_candidates : bool
-        Also start the field from the initialization's other orientations; the best of
-        their field results is refined beside the best start's (decision 0012).
+        Also start the field from the initialization's other orientations; their field
+        results are ranked with the starts' by the objective after a refinement on the
+        coarse grid, and the first is refined (decision 0014).
     warped_prune_modes : int
         Every field start runs to this many modes; only those within ``warped_prune_ratio``
         of the lowest field energy go on (``0``, or ``modes`` or more: every start).

@@ -245,11 +245,17 @@ class StartRunner:
             return float(r.result.final.energy)
         return self.reg.objective(r.result.vertices)
 
+    def coarse_grid_fits(self) -> bool:
+        """Every other node of the quadrature grid makes a grid of at least
+        ``MIN_COARSE_NODES`` along its longest side (the coarse pass's and the warped
+        pass's ranking's grid)."""
+        return max(self.reg.quadrature.shape) >= 2 * MIN_COARSE_NODES
+
     def passes(self, starts, progress) -> tuple["StartRun", list["StartRun"]]:
         """Algorithm 1 from the starts: with ``coarse_starts``, every start on the coarse grid
         (every other node), else on the grid. Returns the run chosen and every run."""
         factor = self.reg.options.select_energy_factor
-        coarse_pass = self.reg.options.coarse_starts and max(self.reg.quadrature.shape) >= 2 * MIN_COARSE_NODES
+        coarse_pass = self.reg.options.coarse_starts and self.coarse_grid_fits()
         if self.reg.options.coarse_starts and not coarse_pass:
             log.info("grid of %d nodes: too coarse for a coarse pass (coarse_starts)", max(self.reg.quadrature.shape))
         if coarse_pass:

@@ -19,7 +19,7 @@ from scipy.sparse.linalg import ArpackError
 
 from .descriptors import heat_kernel_signature, surface_descriptor_grid
 from .errors import MeshValidationError
-from .runs import StartRun, ascending, rms
+from .runs import COARSE_SUFFIX, StartRun, ascending, rms
 from .sdf import Grid
 from .sdf.grid import trilinear_sample
 from .warped_field import WarpedRestField, ZeroEnergy
@@ -127,12 +127,13 @@ def warped_pass(reg: "Registration", starts, forward: "StartRun", progress, cand
     field (:class:`~morphmodes_vol.warped_field.WarpedRestField`) from every start (and from
     ``candidates``, ``(label, T0)`` pairs: the initialization stage's other orientations with
     ``warped_candidates``; past ``warped_prune_modes`` modes only from those of field energy
-    within ``warped_prune_ratio`` of the lowest), refine the field results of lowest field
-    energy among the starts and among the candidates on Eq. (3) (one stage with all modes),
-    and compare with the ``forward`` run's result by the objective on the full grid
-    (``objectives`` and ``kept_before_hops`` in the report); then hop (:func:`_hops`) from
-    the lowest objective among the runs' results and from the lowest among the refined
-    ones, and keep the lowest objective after the hops (decision 0013). Returns the field,
+    within ``warped_prune_ratio`` of the lowest), rank the field results by the objective
+    after a refinement on the coarse grid (:func:`_rank`; ``ranking`` in the report),
+    refine the first on Eq. (3) on the grid (one stage with all modes), and compare it with
+    the ``forward`` run's result by the objective on the full grid (``objectives`` and
+    ``kept_before_hops`` in the report); then hop (:func:`_hops`) from the runs' result
+    and from the refined one, and keep the lowest objective after the hops (decision
+    0013). Returns the field,
     the refining runs, the report (``metrics["warped_pass"]``; each hop's ``chain``: the
     result its chain started from) and the seconds spent on the field (building it and
     minimizing it). ``fields``: the field runs made beside Algorithm 1's
@@ -145,30 +146,32 @@ def warped_pass(reg: "Registration", starts, forward: "StartRun", progress, cand
         log.info("warped rest field from the %s start: %d evaluations, %d steps, %.2f s, "
                  "field energy %.4g", label, run.evaluations, run.steps, run.seconds, run.energy)
     energies = {label: r.energy for label, r in results.items()}
-    start_labels = [label for label, _, _ in starts]
-    chosen = _to_refine(energies, start_labels)
     options = o.replace(initial_modes=o.modes, lm_final_iterations=o.warped_polish_iterations)
-    # a refined result is judged by the objective on the full grid when something is
-    # compared with it: the runs' result, another refined one, a hop (the hops below run
-    # as planned here, unless the objective is not finite or the descriptors fail)
+    ranking, ranked = _rank(reg, results, options, progress)
+    chosen = ascending(ranking)[0]
+    runs = list(ranked.values())
+    # the refined result is judged by the objective on the full grid when something is
+    # compared with it: the runs' result, a hop (the hops below run as planned here,
+    # unless the objective is not finite or the descriptors fail)
     descriptor_hop = o.warped_descriptors and reg.Y is not None  # an SDF target has no surface
-    judge = forward is not None or len(chosen) > 1 or o.warped_hops > 0 or descriptor_hop
-    runs = [reg.runner.run([(WARPED_PREFIX + label, results[label].T, options)], progress, judge=judge)[0]
-            for label in chosen]
+    judge = forward is not None or o.warped_hops > 0 or descriptor_hop
+    refined = ranked.get(chosen)
+    if refined is None or refined.coarse:  # ranked on the grid: refined there already
+        refined = reg.runner.run([(WARPED_PREFIX + chosen, results[chosen].T, options)], progress, judge=judge)[0]
+        runs.append(refined)
     ran = {} if forward is None else {forward.label: reg.runner.full_grid_objective(forward)}  # field_only: no runs
-    compared = {**ran, **{r.label: r.energy for r in runs}}
+    compared = {**ran, refined.label: refined.energy}
     # the lowest objective, the runs' result first among ties, a NaN one last; a candidate
     # that repeats a start's placement (a symmetry of the shape) never reached the field
     # (InitialAlignment.candidate_indices), so a tie across a symmetry cannot turn the result
     kept = ascending(compared)[0]
-    refined = ascending({r.label: r.energy for r in runs})[0]  # the lowest objective among the refined
     log.info("warped rest field: objective %s: kept the %s result",
              ", ".join(f"{k} {e:.4g}" for k, e in compared.items()), kept)
-    # the hops start from the lowest objective among the runs' results and from the lowest
-    # among the refined field results, the lower first; the lowest objective after them is
-    # kept: a near-tie of the two does not decide where the hops explore (decision 0013)
-    of = {r.label: r for r in runs} | ({} if forward is None else {forward.label: forward})
-    heads = ascending({k: compared[k] for k in ascending(ran)[:1] + [refined]})
+    # the hops start from the runs' result and from the refined field result, the lower
+    # first; the lowest objective after them is kept: a near-tie of the two does not decide
+    # where the hops explore (decision 0013)
+    of = {refined.label: refined} | ({} if forward is None else {forward.label: forward})
+    heads = ascending({k: compared[k] for k in ascending(ran)[:1] + [refined.label]})
     kinds, descriptors, descriptor_seconds = _hop_fields(
         reg, fields, descriptor_hop and np.isfinite(compared[kept]))
     ends, hops, hop_fields = {}, [], []
@@ -178,8 +181,8 @@ def warped_pass(reg: "Registration", starts, forward: "StartRun", progress, cand
         ends[current.label] = (objective, current)
     current = ends[ascending({k: e for k, (e, _) in ends.items()})[0]][1]
     report = {"kept": current.label, "kept_before_hops": kept, "objectives": compared,
-              "field_energies": energies, "refined_start": refined[len(WARPED_PREFIX):],
-              "refined_starts": chosen, "skipped_candidates": fields.skipped,
+              "field_energies": energies, "ranking": ranking, "refined_start": chosen,
+              "skipped_candidates": fields.skipped,
               "pruned": pruned, "prune_modes": fields.prune_modes if fields.staged else None,
               "field_energies_at_prune": {label: r.energy for label, r in first.items()} if fields.staged else {},
               "field_nodes": int(len(field.points)), "hops": hops, "descriptors": descriptors}
@@ -189,14 +192,24 @@ def warped_pass(reg: "Registration", starts, forward: "StartRun", progress, cand
     return field, runs, report, seconds
 
 
-def _to_refine(energies: dict, start_labels: list) -> list:
-    """The field results refined on Eq. (3): the one of lowest field energy among the starts
-    and the one among the candidates (other orientations), the lower first. Both, whichever
-    is lower: the objective chooses between them, not a near-tie of field energies
-    (decision 0012)."""
-    starts = ascending({k: e for k, e in energies.items() if k in start_labels})[:1]
-    others = ascending({k: e for k, e in energies.items() if k not in start_labels})[:1]
-    return ascending({k: energies[k] for k in starts + others})
+def _rank(reg: "Registration", results: dict, options, progress) -> tuple[dict, dict]:
+    """The field results (label -> :class:`~morphmodes_vol.warped_field.WarpedRun`) ranked
+    by the objective on the full grid after a refinement on Eq. (3) (``options``: one
+    stage with all modes), when there are several: the objective, not a near-tie of field
+    energies, chooses the one refined on the grid (decision 0014). The refinements run on
+    the coarse pass's grid (every other node) when it has nodes enough
+    (:meth:`~morphmodes_vol.runs.StartRunner.coarse_grid_fits`), else on the grid. Returns
+    label -> objective (a lone result: its field energy) and label -> refining run."""
+    if len(results) < 2:
+        return {label: r.energy for label, r in results.items()}, {}
+    coarse = reg.runner.coarse_grid_fits()
+    grid = (reg.coarse_energy, reg.coarse_objective) if coarse else ()
+    # one at a time: none is stopped for another (runs in lockstep would be, StartRunner.run)
+    ranked = {label: reg.runner.run([(WARPED_PREFIX + label + (COARSE_SUFFIX if coarse else ""), r.T, options)],
+                                    progress, *grid)[0] for label, r in results.items()}
+    for r in ranked.values():
+        r.coarse = coarse
+    return {label: r.energy for label, r in ranked.items()}, ranked
 
 
 def _hop_fields(reg: "Registration", fields: "WarpedFields", descriptor_hop: bool):

@@ -148,11 +148,11 @@ def _check_kept(w):
     the refined results (the runs' result first among ties)."""
     objectives = w["objectives"]
     assert w["kept_before_hops"] == min(objectives, key=objectives.get)
-    # refined: the lowest field energy among the starts and among the candidates, lower first
-    e = w["field_energies"]
-    lowest = [min(group, key=e.get) for group in ([k for k in e if not k.startswith("candidate")],
-                                                  [k for k in e if k.startswith("candidate")]) if group]
-    assert w["refined_starts"] == sorted(lowest, key=e.get)
+    # refined: the field result first by the ranking (every field result, refined)
+    ranking = w["ranking"]
+    assert set(ranking) == set(w["field_energies"])
+    assert w["refined_start"] == min(ranking, key=ranking.get)
+    assert [k for k in objectives if k.startswith("warped: ")] == ["warped: " + w["refined_start"]]
 
 
 def test_warped_pass_keeps_the_lower_objective_and_counts_its_work():
@@ -164,12 +164,9 @@ def test_warped_pass_keeps_the_lower_objective_and_counts_its_work():
     r = reg.run(ground_truth=target[0])
     w = r.metrics["warped_pass"]
     objectives = w["objectives"]
-    refined = ["warped: " + k for k in w["refined_starts"]]
-    assert list(objectives) == [plain.metrics["start"], *refined]
-    # the defaults: every start and candidate on the field, the lowest field energy refined
-    # first (and the best of the other group, starts or candidates: _check_kept)
+    assert list(objectives) == [plain.metrics["start"], "warped: " + w["refined_start"]]
+    # the defaults: every start and candidate on the field, each result ranked (_check_kept)
     assert options.warped_candidates and "field_objectives" not in w
-    assert w["refined_starts"][0] == min(w["field_energies"], key=w["field_energies"].get)
     candidates = {f"candidate {i}" for i in reg.initial_alignment().candidate_indices()}
     assert set(w["field_energies"]) | set(w["skipped_candidates"]) == {"rest", "aligned"} | candidates
     # the runs' part is the registration without the pass, judged on the full grid
@@ -179,6 +176,7 @@ def test_warped_pass_keeps_the_lower_objective_and_counts_its_work():
     assert reg.objective(reg.normalization.apply(r.vertices)) == pytest.approx(objectives[w["kept"]], rel=1e-9)
     assert r.metrics["start"] == w["kept"] == w["kept_before_hops"] and w["hops"] == []
     runs = r.metrics["starts"]
+    refined = ["warped: " + k for k in w["ranking"]]  # each field result, on the grid (too small for a coarse one)
     k = len(refined)
     assert [s["start"] for s in runs[-k:]] == refined and all(s["energy_grid"] == "fine" for s in runs[-k:])
     np.testing.assert_equal(runs[:-k], plain.metrics["starts"])
@@ -265,11 +263,10 @@ def _blob_pair():
     return (X, F), (bend(X, np.radians(60.0)), F)
 
 
-def test_warped_candidates_and_the_choice_by_field_energy():
+def test_warped_candidates_and_the_ranking_by_the_objective():
     """``warped_candidates`` adds the initialization's other orientations as field starts,
-    skipping those that repeat a start; the field results of lowest field energy among the
-    starts and among the candidates are refined, with no evaluation of the objective per
-    field result."""
+    skipping those that repeat a start; every field result is refined and ranked by its
+    objective, and the first is the one refined (decision 0014)."""
     source, target = _blob_pair()
     options = mm.RegistrationOptions(grid=24, modes=6, warped_candidates=True)
     reg = mm.Registration(source, target, options)
@@ -291,14 +288,15 @@ def test_warped_candidates_and_the_choice_by_field_energy():
         X = reg.basis.deform(reg.start_coefficients(alignment.refined_matrices[int(k.split()[1])]))
         assert min(np.sqrt(np.mean(np.sum((X - reg.basis.deform(T)) ** 2, axis=1))) for T in taken) \
             < options.start_merge_distance
-    lowest = min(energies, key=energies.get)
-    assert w["refined_starts"][0] == lowest
-    # and the best of the other group: a start's when a candidate is lowest, and conversely
-    assert len(w["refined_starts"]) == 2
-    assert {k.startswith("candidate") for k in w["refined_starts"]} == {True, False}
-    refined = [k for k in w["objectives"] if k.startswith("warped: ")]
-    assert refined == ["warped: " + k for k in w["refined_starts"]]
+    # every field result refined and ranked by its objective; on a grid too small for a
+    # coarse one (24 nodes), on the grid itself, so the first is the refined result
+    assert set(w["ranking"]) == set(energies)
+    runs = {run["start"]: run for run in r.metrics["starts"]}
+    for label, objective in w["ranking"].items():
+        assert runs["warped: " + label]["energy"] == objective
+        assert runs["warped: " + label]["energy_grid"] == "fine"
     _check_kept(w)
+    assert w["ranking"][w["refined_start"]] == w["objectives"]["warped: " + w["refined_start"]]
     assert r.metrics["ground_truth_error"] < 0.2 * r.metrics["identity_error"]
 
 
@@ -315,7 +313,7 @@ def test_field_starts_far_above_the_lowest_stop_early():
     assert w["prune_modes"] == 2 and len(at) > 3
     assert w["pruned"] == {k: e for k, e in at.items() if e > 1.01 * min(at.values())}
     assert w["pruned"] and set(w["field_energies"]) == set(at) - set(w["pruned"])
-    assert not set(w["refined_starts"]) & set(w["pruned"])
+    assert not set(w["ranking"]) & set(w["pruned"]) and w["refined_start"] not in w["pruned"]
 
     every = mm.register(source, target, options.replace(warped_prune_modes=0))
     we = every.metrics["warped_pass"]
@@ -324,7 +322,7 @@ def test_field_starts_far_above_the_lowest_stop_early():
     for k, e in w["field_energies"].items():
         assert e == pytest.approx(we["field_energies"][k], rel=1e-9)
     assert we["field_evaluations"] > w["field_evaluations"]
-    if w["refined_starts"] == we["refined_starts"]:
+    if w["refined_start"] == we["refined_start"]:
         np.testing.assert_allclose(r.vertices, every.vertices, atol=1e-9)
     # a ratio no start exceeds stops none, and prune_modes >= modes is off
     for change in ({"warped_prune_ratio": 1e12}, {"warped_prune_modes": 10}):
@@ -441,25 +439,26 @@ def test_warped_pass_options_are_checked_and_on_the_command_line():
 
 def test_field_only_refines_the_field_alone_and_recovers_a_rigid_motion():
     """``field_only`` (on in the fastest setting): no run of Algorithm 1 from the starts; the
-    field result of lowest field energy is refined on Eq. (3) and kept, with nothing to
-    compare it with (no objective on the full grid). The field is exact for a rigid motion,
-    so a turned and moved blob is recovered to well under 1% of the identity error."""
+    field results are refined on Eq. (3) (on a grid of 32 nodes, too small for a coarse
+    one, on the grid) and the one of lowest objective is kept. The field is exact for a
+    rigid motion, so a turned and moved blob is recovered to well under 1% of the identity
+    error."""
     X, F = asymmetric_blob()
     Y = X @ Rotation.from_rotvec([0.2, 0.4, -0.3]).as_matrix().T + [0.05, -0.03, 0.02]
     options = mm.RegistrationOptions.fastest().replace(grid=32, modes=4)
     r = mm.register((X, F), (Y, F), options, ground_truth=Y)
     w = r.metrics["warped_pass"]
-    energies = w["field_energies"]
-    best = min(energies, key=energies.get)
-    assert [s["start"] for s in r.metrics["starts"]] == ["warped: " + best] == [w["kept"]]
-    assert set(energies) | set(w["pruned"]) == {"rest", "aligned"}  # the two starts, no ICP
+    ranking = w["ranking"]
+    best = min(ranking, key=ranking.get)
+    assert [s["start"] for s in r.metrics["starts"]] == ["warped: " + k for k in ranking]
+    assert w["kept"] == "warped: " + best and r.metrics["start"] == w["kept"]
+    assert set(ranking) | set(w["pruned"]) == {"rest", "aligned"}  # the two starts, no ICP
     assert list(w["objectives"]) == ["warped: " + best] and w["hops"] == []
-    assert r.metrics["comparison_evaluations"] == 0  # nothing judged on the full grid
     # the report's initial residual is at the rest pose (one evaluation), not the field's result
     reg = mm.Registration((X, F), (Y, F), options)
     assert r.metrics["initial_sdf_rms"] == pytest.approx(reg.energy().evaluate(reg.X0).rms_residual, rel=1e-12)
     assert r.metrics["final_sdf_rms"] < 0.2 * r.metrics["initial_sdf_rms"]
-    assert r.evaluations == r.metrics["starts"][0]["evaluations"] > 0
+    assert r.evaluations == sum(s["evaluations"] for s in r.metrics["starts"]) > 0
     assert r.metrics["ground_truth_error"] < 0.01 * r.metrics["identity_error"]
 
 
@@ -526,3 +525,21 @@ def test_the_hops_from_the_best_refined_result_reach_chicken_05(data_dir):
     assert kept["chain"] == chains[1] and kept["objective"] < min(
         h["objective"] for h in w["hops"] if h["chain"] == chains[0])
     assert r.metrics["ground_truth_error"] < 0.12
+
+
+def test_the_ranking_runs_on_the_coarse_grid_when_it_fits():
+    """On a grid of 48 nodes the field results are refined on every other node (the coarse
+    pass's grid), each judged by the objective on the full grid; the first is refined again
+    on the grid, from its field result (decision 0014)."""
+    source, target = _blob_pair()
+    options = mm.RegistrationOptions(grid=48, modes=3, warped_hops=0, warped_descriptors=False)
+    r = mm.register(source, target, options)
+    w = r.metrics["warped_pass"]
+    assert len(w["ranking"]) > 1
+    runs = {run["start"]: run for run in r.metrics["starts"]}
+    for label, objective in w["ranking"].items():
+        assert runs[f"warped: {label} (coarse)"]["energy"] == objective
+        assert runs[f"warped: {label} (coarse)"]["energy_grid"] == "fine"
+    assert w["refined_start"] == min(w["ranking"], key=w["ranking"].get)
+    assert runs["warped: " + w["refined_start"]]["energy_grid"] == "fine"
+    _check_kept(w)
