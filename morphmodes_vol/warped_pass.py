@@ -133,10 +133,9 @@ def warped_pass(reg: "Registration", starts, forward: "StartRun", progress, cand
     the ``forward`` run's result by the objective on the full grid (``objectives`` and
     ``kept_before_hops`` in the report); then hop (:func:`_hops`) from the runs' result
     and from the refined one, and keep the lowest objective after the hops (decision
-    0013). Returns the field,
-    the refining runs, the report (``metrics["warped_pass"]``; each hop's ``chain``: the
-    result its chain started from) and the seconds spent on the field (building it and
-    minimizing it). ``fields``: the field runs made beside Algorithm 1's
+    0013). Returns the field, the refining runs, the report (``metrics["warped_pass"]``;
+    each hop's ``chain``: the result its chain started from) and the seconds spent on the
+    field (building it and minimizing it). ``fields``: the field runs made beside Algorithm 1's
     (:func:`warped_fields`, ``overlap_field``), else made here."""
     o = reg.options
     if fields is None:
