@@ -251,6 +251,17 @@ class StartRunner:
         pass's ranking's grid)."""
         return max(self.reg.quadrature.shape) >= 2 * MIN_COARSE_NODES
 
+    def run_coarse(self, starts, progress) -> list["StartRun"]:
+        """:meth:`run` on the coarse grid (every other node of the quadrature grid: Eq. (3) by
+        :meth:`Registration.coarse_energy`, compared by :meth:`Registration.coarse_objective`),
+        each run named with ``COARSE_SUFFIX`` and marked ``coarse``; a run that ends is judged
+        on the full grid, as by :meth:`run`."""
+        runs = self.run([(label + COARSE_SUFFIX, start, options) for label, start, options in starts],
+                        progress, self.reg.coarse_energy, self.reg.coarse_objective)
+        for r in runs:
+            r.coarse = True
+        return runs
+
     def passes(self, starts, progress) -> tuple["StartRun", list["StartRun"]]:
         """Algorithm 1 from the starts: with ``coarse_starts``, every start on the coarse grid
         (every other node), else on the grid. Returns the run chosen and every run."""
@@ -261,10 +272,7 @@ class StartRunner:
         if coarse_pass:
             # every start on the coarse grid; the grid itself is the warped pass's, whose
             # refinements run on it (docs/decisions/0004)
-            coarse = [(label + COARSE_SUFFIX, start, options) for label, start, options in starts]
-            runs = self.run(coarse, progress, self.reg.coarse_energy, self.reg.coarse_objective)
-            for r in runs:
-                r.coarse = True
+            runs = self.run_coarse(starts, progress)
             chosen = select_start([r for r in runs if r.stopped is None], factor)
         else:
             # a lone run is not compared with anything (unless two_way compares it with the

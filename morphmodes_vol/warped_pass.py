@@ -19,7 +19,7 @@ from scipy.sparse.linalg import ArpackError
 
 from .descriptors import heat_kernel_signature, surface_descriptor_grid
 from .errors import MeshValidationError
-from .runs import COARSE_SUFFIX, StartRun, ascending, rms
+from .runs import StartRun, ascending, rms
 from .sdf import Grid
 from .sdf.grid import trilinear_sample
 from .warped_field import WarpedRestField, ZeroEnergy
@@ -201,13 +201,9 @@ def _rank(reg: "Registration", results: dict, options, progress) -> tuple[dict, 
     label -> objective (a lone result: its field energy) and label -> refining run."""
     if len(results) < 2:
         return {label: r.energy for label, r in results.items()}, {}
-    coarse = reg.runner.coarse_grid_fits()
-    grid = (reg.coarse_energy, reg.coarse_objective) if coarse else ()
+    run = reg.runner.run_coarse if reg.runner.coarse_grid_fits() else reg.runner.run
     # one at a time: none is stopped for another (runs in lockstep would be, StartRunner.run)
-    ranked = {label: reg.runner.run([(WARPED_PREFIX + label + (COARSE_SUFFIX if coarse else ""), r.T, options)],
-                                    progress, *grid)[0] for label, r in results.items()}
-    for r in ranked.values():
-        r.coarse = coarse
+    ranked = {label: run([(WARPED_PREFIX + label, r.T, options)], progress)[0] for label, r in results.items()}
     return {label: r.energy for label, r in ranked.items()}, ranked
 
 
