@@ -39,6 +39,21 @@ def test_dense_surface_bounds_of_a_plane_field():
     np.testing.assert_allclose(hi, [1.3, 3, 3])
 
 
+def test_confidence_of_a_square_in_front_beside_its_rim_and_behind():
+    """An open square in z = 0 (normals +z), a band of 0.1 (sdf/confidence.py, decision
+    0006): 1 in front of it, 0 behind it, 1 within the band; beside its rim at cosine 0,
+    smoothstep(0.5) = 0.5; at cosine 1 / sqrt(82) = 0.1104, smoothstep((0.1104 + 0.2) / 0.4)
+    = 0.8720; at cosine -0.447, 0."""
+    from morphmodes_vol.sdf.confidence import target_confidence
+
+    V = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0.0]])
+    F = np.array([[0, 1, 2], [0, 2, 3]])
+    # nodes every 0.25 over [-4, 4]^3: the samples below sit on nodes
+    c = target_confidence(V, F, Grid.covering([-4.0] * 3, [4.0] * 3, 33), band=0.1)
+    Q = np.array([[0, 0, 1], [0, 0, -1], [1, 0, 0], [1.5, 0, 0], [3.25, 0, 0.25], [1.5, 0, -0.25]])
+    np.testing.assert_allclose(c.sample(Q), [1, 0, 1, 0.5, 0.8720, 0], atol=1e-4)
+
+
 def test_check_openvdb_refuses_numpy_2(monkeypatch):
     from morphmodes_vol.sdf import vdb
 
