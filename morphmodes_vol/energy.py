@@ -87,7 +87,11 @@ class SDFEnergy:
     Parameters
     ----------
     F : (m, 3) int
-        Source triangles.
+        Source triangles, oriented outward where they enclose a volume (as the registration
+        makes them, :func:`morphmodes_vol.repair.sdf_faces`): the source's SDF follows their
+        orientation (``oriented`` of :func:`~morphmodes_vol.sdf.signed_distance`), so a
+        deformation that turns a closed source inside out does not fit a target as well as
+        the same surface the right way out (docs/decisions/0017).
     Q : (k, 3) float
         Quadrature points.
     g : (k,) float
@@ -145,7 +149,7 @@ class SDFEnergy:
         """
         t0 = time.perf_counter()
         if known is None:
-            sd = signed_distance(X, self.F, self.Q, sign=self.sign, samples=self.samples)
+            sd = signed_distance(X, self.F, self.Q, sign=self.sign, samples=self.samples, oriented=True)
             value, faces, bary, normal = sd.value, sd.closest.faces, sd.closest.barycentrics, sd.normal
             self.points_queried += len(value)
         else:
@@ -153,7 +157,8 @@ class SDFEnergy:
             if known.mask.shape != (k,):
                 raise ValueError(f"known.mask must have shape ({k},), got {known.mask.shape}")
             new = ~known.mask
-            sd = signed_distance(X, self.F, self.Q[new], sign=self.sign, samples=self.samples)
+            sd = signed_distance(X, self.F, self.Q[new], sign=self.sign, samples=self.samples,
+                                 oriented=True)
             value, faces = np.empty(k), np.empty(k, dtype=np.int64)
             bary, normal = np.empty((k, 3)), np.empty((k, 3))
             for out, old, fresh in ((value, known.value, sd.value), (faces, known.faces, sd.closest.faces),

@@ -353,14 +353,16 @@ def test_disjoint_bounding_boxes_move_towards_the_target(caplog):
         assert r.metrics["ground_truth_error"] < 0.5 * r.metrics["identity_error"]
     # the last runs, from the rest pose (the warped pass's choice, before any hop from it)
     assert r.metrics["warped_pass"]["kept_before_hops"] in ("rest", "warped: rest")
-    # the paper's gradient steps from the rest pose only start moving, and say it may have failed
+    # the paper's gradient steps from the rest pose only start moving (they shrink the source
+    # towards nothing, and stop before turning it inside out: decision 0017), and say it may
+    # have failed
     with caplog.at_level(logging.WARNING):
         r = mm.register((V, F), (far, F), ground_truth=far, grid=16, modes=2, max_iterations=40,
                         optimizer="paper", quadrature="full", initialization="none", warped_pass=False)
     assert "the registration may have failed" in caplog.text
     assert np.isfinite(r.vertices).all()
-    assert r.history.energy[-1] < 0.5 * r.history.energy[0]
-    assert r.metrics["ground_truth_error"] < 0.9 * r.metrics["identity_error"]
+    assert r.history.energy[-1] < 0.8 * r.history.energy[0]
+    assert r.metrics["ground_truth_error"] < 0.95 * r.metrics["identity_error"]
 
 
 def test_different_genus_registers_both_ways():

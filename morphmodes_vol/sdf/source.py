@@ -4,7 +4,11 @@ needs: the closest triangle and the barycentric coordinates of the closest point
 The closest triangle is found by Open3D's BVH (``RaycastingScene.compute_closest_points``,
 float32); the closest point on that triangle is then recomputed in float64 so the distance
 is a smooth function of the vertex positions between closest-feature switches. The sign
-comes from an inside test: ray-parity occupancy (``compute_occupancy``), negative inside.
+comes from an inside test: ray-parity occupancy (``compute_occupancy``), negative inside,
+or the generalized winding number. Ray parity does not see the orientation of the
+triangles; with ``oriented=True`` the sign of the enclosed volume (:func:`enclosed_volume`)
+supplies it, so that a surface turned inside out (a deformation through a reflection) has
+its inside outside (docs/decisions/0017).
 """
 
 from __future__ import annotations
@@ -17,7 +21,8 @@ import numpy as np
 from ..errors import OptionError
 from .closest_point import closest_point_barycentrics
 
-__all__ = ["ClosestPoints", "SignedDistanceQuery", "closest_points", "signed_distance", "is_closed", "resolve_sign"]
+__all__ = ["ClosestPoints", "SignedDistanceQuery", "closest_points", "signed_distance", "enclosed_volume",
+           "is_closed", "resolve_sign"]
 
 SignMethod = Literal["raycast", "winding"]
 
@@ -154,10 +159,33 @@ def resolve_sign(F, sign: str) -> SignMethod:
     return sign
 
 
+def enclosed_volume(V: np.ndarray, F: np.ndarray) -> float:
+    """Signed volume enclosed by the triangles ``F (m, 3)`` at the vertices ``V (n, 3)``
+    (the divergence theorem, a sum of tetrahedra on the origin): positive for a closed
+    surface oriented outward, negative for the same surface inside out.
+
+    Examples
+    --------
+    >>> import trimesh
+    >>> box = trimesh.creation.box()
+    >>> enclosed_volume(box.vertices, box.faces), enclosed_volume(box.vertices, box.faces[:, ::-1])
+    (1.0, -1.0)
+    """
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    return float(np.einsum("ij,ij->", V[F[:, 0]], np.cross(V[F[:, 1]], V[F[:, 2]]))) / 6.0
+
+
 def signed_distance(V: np.ndarray, F: np.ndarray, Q: np.ndarray, sign: SignMethod = "raycast",
-                    samples: int = 1) -> SignedDistanceQuery:
+                    samples: int = 1, oriented: bool = False) -> SignedDistanceQuery:
     """Signed distance of the mesh ``(V, F)`` at ``Q (k, 3)``, negative inside; ``sign`` as
     :func:`inside` decides it, or ``"auto"`` (:func:`resolve_sign`).
+
+    ``oriented``: the orientation of the triangles decides which side is inside. Ray parity
+    does not see it; with ``oriented`` its sign is flipped when the enclosed volume
+    (:func:`enclosed_volume`) is negative: a closed surface oriented outward at rest and
+    turned inside out by a deformation (a reflection) then has its SDF negated, not
+    unchanged. The winding number sees the orientation already.
 
     Examples
     --------
@@ -166,11 +194,16 @@ def signed_distance(V: np.ndarray, F: np.ndarray, Q: np.ndarray, sign: SignMetho
     >>> q = signed_distance(s.vertices, s.faces, np.array([[0, 0, 0.0], [2, 0, 0]]))
     >>> np.round(q.value, 2)
     array([-1.,  1.])
+    >>> inverted = s.faces[:, ::-1]  # the same sphere, inside out
+    >>> np.round(signed_distance(s.vertices, inverted, np.array([[0, 0, 0.0]]), oriented=True).value, 2)
+    array([1.])
     """
     sign = resolve_sign(F, sign)
     scene = _scene(V, F) if sign == "raycast" else None
     cp = closest_points(V, F, Q, scene=scene)
     sgn = np.where(inside(V, F, Q, sign, scene=scene, samples=samples), -1.0, 1.0)
+    if oriented and sign == "raycast" and enclosed_volume(V, F) < 0:
+        sgn = -sgn  # inside out: the parity's inside is the surface's outside
     diff = Q - cp.points
     with np.errstate(divide="ignore", invalid="ignore"):
         normal = sgn[:, None] * diff / cp.distance[:, None]
