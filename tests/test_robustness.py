@@ -2,9 +2,9 @@
 target delivered with another triangulation, registers to (about) the same place.
 
 Generated shapes (a tapered capsule onto a stretched, bent copy: a known answer) at the defaults,
-and a real-data guard over four pairs of ``../shared/data`` (two of the tuning set, two of the
+and a real-data guard over five pairs of ``../shared/data`` (two of the tuning set, three of the
 validation set): the median of three jittered copies stays below 1.5 times its value measured
-when the defaults were set (``scripts/robustness_study.py``)."""
+when the defaults were set (``scripts/robustness_study.py``), and no copy is turned inside out."""
 
 import numpy as np
 import pytest
@@ -13,6 +13,7 @@ import morphmodes_vol as mm
 from morphmodes_vol.mesh import bbox_diagonal, load_mesh
 from morphmodes_vol.metrics import ground_truth_error
 from morphmodes_vol.primitives import bend, capsule
+from morphmodes_vol.sdf import enclosed_volume
 from morphmodes_vol.variants import jittered, partial_view, retriangulated
 
 JITTER = 1e-7
@@ -100,8 +101,9 @@ def test_half_a_target_registers_the_whole_source(pair):
 
 # pair -> the median of three jittered copies at the defaults (robustness study, original
 # target, `python scripts/robustness_study.py --quick --variants original`); the guard
-# allows 1.5 times
-GUARDED = {"lion-01": 0.0125, "cat-03": 0.0379, "dance-04": 0.0029, "jump-03": 0.0140}
+# allows 1.5 times. dance-01: a near-symmetric body that a reflection fits (0.118, inside out,
+# before decision 0017)
+GUARDED = {"lion-01": 0.0125, "cat-03": 0.0379, "dance-01": 0.0094, "dance-04": 0.0029, "jump-03": 0.0140}
 
 
 @pytest.mark.slow
@@ -111,6 +113,8 @@ def test_real_pairs_median_of_jittered_copies_stays_below_its_measured_error(dat
     body = pair.rsplit("-", 1)[0]
     V, F = load_mesh(data_dir / f"{body}-poses" / f"{body}-reference.obj")
     Vt, Ft = load_mesh(data_dir / f"{body}-poses" / f"{pair}.obj")
-    errors = [ground_truth_error(mm.register((jittered(V, JITTER, k), F), (Vt, Ft)).vertices, Vt)
-              for k in range(3)]
+    results = [mm.register((jittered(V, JITTER, k), F), (Vt, Ft)).vertices for k in range(3)]
+    errors = [ground_truth_error(X, Vt) for X in results]
     assert np.median(errors) < 1.5 * GUARDED[pair], (pair, errors)
+    # the right way out, as the source (a reflection fits a near-symmetric body's surface too)
+    assert all(enclosed_volume(X, F) * enclosed_volume(V, F) > 0 for X in results), pair
