@@ -185,7 +185,8 @@ def signed_distance(V: np.ndarray, F: np.ndarray, Q: np.ndarray, sign: SignMetho
     does not see it; with ``oriented`` its sign is flipped when the enclosed volume
     (:func:`enclosed_volume`) is negative: a closed surface oriented outward at rest and
     turned inside out by a deformation (a reflection) then has its SDF negated, not
-    unchanged. The winding number sees the orientation already.
+    unchanged. The winding number needs no flip: it is negative inside a surface turned
+    inside out, which it therefore does not count as inside.
 
     Examples
     --------
