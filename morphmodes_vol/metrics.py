@@ -20,6 +20,7 @@ import numpy as np
 
 from .errors import MeshValidationError
 from .mesh import bbox_diagonal
+from .sdf.source import signed_volume
 
 __all__ = [
     "ground_truth_error",
@@ -160,21 +161,6 @@ def edge_strain(V0, V, F) -> float:
     l1 = np.linalg.norm(V[e[:, 0]] - V[e[:, 1]], axis=1)
     keep = l0 > 0
     return float(np.mean(np.abs(np.log(np.maximum(l1[keep], 1e-12 * l0[keep]) / l0[keep]))))
-
-
-def signed_volume(V, F) -> float:
-    """Enclosed volume of a closed, outward-oriented mesh (divergence theorem), signed.
-
-    Examples
-    --------
-    >>> V = [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]
-    >>> F = [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]
-    >>> round(signed_volume(V, F), 12)
-    0.166666666667
-    """
-    V = np.asarray(V, dtype=np.float64)
-    F = np.asarray(F, dtype=np.int64)
-    return float(np.einsum("ij,ij->i", V[F[:, 0]], np.cross(V[F[:, 1]], V[F[:, 2]])).sum() / 6.0)
 
 
 def best_affine_fit(X0, X) -> tuple[np.ndarray, np.ndarray]:

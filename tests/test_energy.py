@@ -7,7 +7,7 @@ import pytest
 from morphmodes_vol.eigenbasis import LBSBasis, skinning_eigenmodes
 from morphmodes_vol.energy import SDFEnergy
 from morphmodes_vol.primitives import icosphere
-from morphmodes_vol.sdf import Grid, enclosed_volume, signed_distance
+from morphmodes_vol.sdf import Grid, signed_volume, signed_distance
 
 
 def _energy_for(V, F, target_V, resolution=11):
@@ -32,12 +32,12 @@ def test_energy_value_is_weighted_sum_of_squares():
     assert E.evaluations == 1
 
 
-def test_enclosed_volume_of_a_tetrahedron_by_hand():
+def test_signed_volume_of_a_tetrahedron_by_hand():
     V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]])
     F = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])  # normals outward
-    assert enclosed_volume(V, F) == pytest.approx(1 / 6)
-    assert enclosed_volume(V, F[:, ::-1]) == pytest.approx(-1 / 6)
-    assert enclosed_volume(V + [3.0, -2.0, 5.0], F) == pytest.approx(1 / 6)  # closed: any origin
+    assert signed_volume(V, F) == pytest.approx(1 / 6)
+    assert signed_volume(V, F[:, ::-1]) == pytest.approx(-1 / 6)
+    assert signed_volume(V + [3.0, -2.0, 5.0], F) == pytest.approx(1 / 6)  # closed: any origin
 
 
 @pytest.mark.parametrize("sign", ["raycast", "winding"])
@@ -51,7 +51,7 @@ def test_a_source_turned_inside_out_does_not_fit_its_mirror_image(sign):
     V, F = icosphere(2)
     V = V * [1.5, 1.0, 0.7] + [0.3, 0.1, -0.2]
     M = V * [-1.0, 1.0, 1.0]
-    assert enclosed_volume(V, F) > 0 > enclosed_volume(M, F)
+    assert signed_volume(V, F) > 0 > signed_volume(M, F)
     grid = Grid.covering(M.min(0), M.max(0), 11, padding=0.3)
     Q = grid.points() + np.array([0.0123, -0.0071, 0.0047])
     g = signed_distance(M, F[:, ::-1], Q).value

@@ -13,7 +13,7 @@ import morphmodes_vol as mm
 from morphmodes_vol.mesh import bbox_diagonal, load_mesh
 from morphmodes_vol.metrics import ground_truth_error
 from morphmodes_vol.primitives import bend, capsule
-from morphmodes_vol.sdf import enclosed_volume
+from morphmodes_vol.sdf import signed_volume
 from morphmodes_vol.variants import jittered, partial_view, retriangulated
 
 JITTER = 1e-7
@@ -117,4 +117,4 @@ def test_real_pairs_median_of_jittered_copies_stays_below_its_measured_error(dat
     errors = [ground_truth_error(X, Vt) for X in results]
     assert np.median(errors) < 1.5 * GUARDED[pair], (pair, errors)
     # the right way out, as the source (a reflection fits a near-symmetric body's surface too)
-    assert all(enclosed_volume(X, F) * enclosed_volume(V, F) > 0 for X in results), pair
+    assert all(signed_volume(X, F) * signed_volume(V, F) > 0 for X in results), pair

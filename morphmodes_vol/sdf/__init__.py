@@ -4,7 +4,7 @@ deformed source at every evaluation)."""
 
 from .closest_point import closest_point_barycentrics
 from .grid import Grid, trilinear_sample
-from .source import ClosestPoints, SignedDistanceQuery, closest_points, enclosed_volume, inside, signed_distance
+from .source import ClosestPoints, SignedDistanceQuery, closest_points, inside, signed_distance, signed_volume
 from .target import (
     TARGET_BACKENDS,
     DenseTargetSDF,
@@ -22,7 +22,7 @@ __all__ = [
     "ClosestPoints",
     "SignedDistanceQuery",
     "closest_points",
-    "enclosed_volume",
+    "signed_volume",
     "inside",
     "signed_distance",
     "DenseTargetSDF",

@@ -6,7 +6,7 @@ float32); the closest point on that triangle is then recomputed in float64 so th
 is a smooth function of the vertex positions between closest-feature switches. The sign
 comes from an inside test: ray-parity occupancy (``compute_occupancy``), negative inside,
 or the generalized winding number. Ray parity does not see the orientation of the
-triangles; with ``oriented=True`` the sign of the enclosed volume (:func:`enclosed_volume`)
+triangles; with ``oriented=True`` the sign of the enclosed volume (:func:`signed_volume`)
 supplies it, so that a surface turned inside out (a deformation through a reflection) has
 its inside outside (docs/decisions/0017).
 """
@@ -21,7 +21,7 @@ import numpy as np
 from ..errors import OptionError
 from .closest_point import closest_point_barycentrics
 
-__all__ = ["ClosestPoints", "SignedDistanceQuery", "closest_points", "signed_distance", "enclosed_volume",
+__all__ = ["ClosestPoints", "SignedDistanceQuery", "closest_points", "signed_distance", "signed_volume",
            "is_closed", "resolve_sign"]
 
 SignMethod = Literal["raycast", "winding"]
@@ -159,17 +159,17 @@ def resolve_sign(F, sign: str) -> SignMethod:
     return sign
 
 
-def enclosed_volume(V: np.ndarray, F: np.ndarray) -> float:
+def signed_volume(V, F) -> float:
     """Signed volume enclosed by the triangles ``F (m, 3)`` at the vertices ``V (n, 3)``
     (the divergence theorem, a sum of tetrahedra on the origin): positive for a closed
     surface oriented outward, negative for the same surface inside out.
 
     Examples
     --------
-    >>> import trimesh
-    >>> box = trimesh.creation.box()
-    >>> enclosed_volume(box.vertices, box.faces), enclosed_volume(box.vertices, box.faces[:, ::-1])
-    (1.0, -1.0)
+    >>> V = [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]
+    >>> F = [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]
+    >>> round(signed_volume(V, F), 12), round(signed_volume(V, [f[::-1] for f in F]), 12)
+    (0.166666666667, -0.166666666667)
     """
     V = np.asarray(V, dtype=np.float64)
     F = np.asarray(F, dtype=np.int64)
@@ -183,7 +183,7 @@ def signed_distance(V: np.ndarray, F: np.ndarray, Q: np.ndarray, sign: SignMetho
 
     ``oriented``: the orientation of the triangles decides which side is inside. Ray parity
     does not see it; with ``oriented`` its sign is flipped when the enclosed volume
-    (:func:`enclosed_volume`) is negative: a closed surface oriented outward at rest and
+    (:func:`signed_volume`) is negative: a closed surface oriented outward at rest and
     turned inside out by a deformation (a reflection) then has its SDF negated, not
     unchanged. The winding number needs no flip: it is negative inside a surface turned
     inside out, which it therefore does not count as inside.
@@ -203,7 +203,7 @@ def signed_distance(V: np.ndarray, F: np.ndarray, Q: np.ndarray, sign: SignMetho
     scene = _scene(V, F) if sign == "raycast" else None
     cp = closest_points(V, F, Q, scene=scene)
     sgn = np.where(inside(V, F, Q, sign, scene=scene, samples=samples), -1.0, 1.0)
-    if oriented and sign == "raycast" and enclosed_volume(V, F) < 0:
+    if oriented and sign == "raycast" and signed_volume(V, F) < 0:
         sgn = -sgn  # inside out: the parity's inside is the surface's outside
     diff = Q - cp.points
     with np.errstate(divide="ignore", invalid="ignore"):
