@@ -55,6 +55,7 @@ def test_areas_and_volume_by_hand():
     box = trimesh.creation.box(extents=(1, 2, 3))
     assert metrics.signed_volume(box.vertices, box.faces) == pytest.approx(6.0)
     assert metrics.signed_volume(box.vertices, box.faces[:, ::-1]) == pytest.approx(-6.0)
+    assert metrics.signed_volume(box.vertices + [3.0, -2.0, 5.0], box.faces) == pytest.approx(6.0)  # any origin
     assert metrics.triangle_areas(box.vertices, box.faces).sum() == pytest.approx(2 * (2 + 3 + 6))
 
 
