@@ -10,7 +10,9 @@ above 0.2), beside it (within +-0.2) or behind it, near it (``|g|`` within the b
 ``band_cells`` spacings) or far; with the share where the truth is farther from the node
 than the target (``f > g``). With ``--register``, the registration is run too and its
 objective printed beside the truth's: a result whose objective is lower than the truth's
-means the energy, not the search, prefers the wrong shape.
+means the energy prefers the wrong shape to the true one. (The truth is taken as it is, not
+refined in the subspace: a refinement from it may still find a shape near it below the
+result, which would make the failure the search's.)
 
     python scripts/truth_energy.py cat-04 partial
     python scripts/truth_energy.py chicken-05 view1-points --register [--set isometry_weight=0]
