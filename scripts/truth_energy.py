@@ -8,7 +8,9 @@ where they belong). Eq. (3)'s part is split by where the nodes lie relative to t
 in front of it (the cosine between ``q - p`` and the normal of the closest target triangle
 above 0.2), beside it (within +-0.2) or behind it, near it (``|g|`` within the band of
 ``band_cells`` spacings) or far; with the share where the truth is farther from the node
-than the target (``f > g``). With ``--register``, the registration is run too and its
+than the target (``f > g``); for a point cloud, also the share where the closest point of the
+target's surface lies farther than 2% of the diagonal from every point: surface the
+reconstruction invented. With ``--register``, the registration is run too and its
 objective printed beside the truth's: a result whose objective is lower than the truth's
 means the energy prefers the wrong shape to the true one. (The truth is taken as it is, not
 refined in the subspace: a refinement from it may still find a shape near it below the
@@ -25,6 +27,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _data import mesh_file, parse_overrides  # noqa: E402
@@ -33,17 +36,21 @@ from scan_study import KINDS, scan_target  # noqa: E402
 import morphmodes_vol as mm  # noqa: E402
 from morphmodes_vol.mesh import load_mesh  # noqa: E402
 from morphmodes_vol.metrics import ground_truth_error  # noqa: E402
+from morphmodes_vol.pointcloud import PointCloud  # noqa: E402
 from morphmodes_vol.sdf.source import closest_points  # noqa: E402
 from morphmodes_vol.variants import VARIANTS, target_variant  # noqa: E402
 
 _SIDE = 0.2  # the cosine that separates in front / beside / behind
 
 
-def regions(reg: mm.Registration) -> dict[str, np.ndarray]:
+_INVENTED = 0.02  # farther than this fraction of the diagonal from every point: invented
+
+
+def regions(reg: mm.Registration, cp) -> dict[str, np.ndarray]:
     """Boolean masks ``(N,)`` over the grid nodes of ``reg``: in front / beside / behind
-    its target, near (within the band) or far."""
+    its target, near (within the band) or far; ``cp`` the nodes' closest points on the
+    target's surface."""
     Y, F, Q = reg.Y, reg.target_sdf_faces, reg.Q
-    cp = closest_points(Y, F, Q)
     n = np.cross(Y[F[:, 1]] - Y[F[:, 0]], Y[F[:, 2]] - Y[F[:, 0]])
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
     cosine = np.einsum("ij,ij->i", Q - cp.points, n[cp.faces]) / np.maximum(cp.distance, 1e-300)
@@ -78,11 +85,17 @@ def main() -> int:
     total = reg.with_terms(reg.full_energy()).evaluate(truth)
     print(f"{args.pair}, {args.kind}: objective at the ground truth {total.energy:.3e}, of which "
           f"Eq. (3) {e.sum():.3e} and the added terms (the isometry prior) {total.extra_energy:.3e}")
-    print("| nodes | count | share of Eq. (3) | of it where f > g |\n|---|---|---|---|")
-    for name, m in regions(reg).items():
-        share = e[m].sum() / max(e.sum(), 1e-300)
-        farther = e[m & (ev.residual > 0)].sum() / max(e.sum(), 1e-300)
-        print(f"| {name} | {int(m.sum())} | {share:.3f} | {farther:.3f} |")
+    cp = closest_points(reg.Y, reg.target_sdf_faces, reg.Q)
+    invented = np.zeros(len(e), dtype=bool)
+    header = "| nodes | count | share of Eq. (3) | of it where f > g |"
+    if isinstance(target, PointCloud):
+        gap, _ = cKDTree(reg.normalization.apply(target.points)).query(cp.points)
+        invented = gap > _INVENTED * np.linalg.norm(np.ptp(reg.Y, axis=0))
+        header += " of it on invented surface |"
+    print(header + "\n" + "|---" * (header.count("|") - 1) + "|")
+    for name, m in regions(reg, cp).items():
+        cells = [e[m].sum(), e[m & (ev.residual > 0)].sum()] + ([e[m & invented].sum()] if invented.any() else [])
+        print(f"| {name} | {int(m.sum())} | " + " | ".join(f"{c / max(e.sum(), 1e-300):.3f}" for c in cells) + " |")
     if args.register:
         result = reg.run()
         X = reg.normalization.apply(result.vertices)
