@@ -41,8 +41,6 @@ from morphmodes_vol.sdf.source import closest_points  # noqa: E402
 from morphmodes_vol.variants import VARIANTS, target_variant  # noqa: E402
 
 _SIDE = 0.2  # the cosine that separates in front / beside / behind
-
-
 _INVENTED = 0.02  # farther than this fraction of the diagonal from every point: invented
 
 
@@ -82,19 +80,19 @@ def main() -> int:
     sdf = reg.full_energy()
     ev = sdf.evaluate(truth)
     e = sdf.weights * ev.residual**2
-    total = reg.with_terms(reg.full_energy()).evaluate(truth)
+    total = reg.with_terms(sdf).evaluate(truth)
     print(f"{args.pair}, {args.kind}: objective at the ground truth {total.energy:.3e}, of which "
           f"Eq. (3) {e.sum():.3e} and the added terms (the isometry prior) {total.extra_energy:.3e}")
     cp = closest_points(reg.Y, reg.target_sdf_faces, reg.Q)
-    invented = np.zeros(len(e), dtype=bool)
+    cloud = isinstance(target, PointCloud)
     header = "| nodes | count | share of Eq. (3) | of it where f > g |"
-    if isinstance(target, PointCloud):
+    if cloud:
         gap, _ = cKDTree(reg.normalization.apply(target.points)).query(cp.points)
         invented = gap > _INVENTED * np.linalg.norm(np.ptp(reg.Y, axis=0))
         header += " of it on invented surface |"
     print(header + "\n" + "|---" * (header.count("|") - 1) + "|")
     for name, m in regions(reg, cp).items():
-        cells = [e[m].sum(), e[m & (ev.residual > 0)].sum()] + ([e[m & invented].sum()] if invented.any() else [])
+        cells = [e[m].sum(), e[m & (ev.residual > 0)].sum()] + ([e[m & invented].sum()] if cloud else [])
         print(f"| {name} | {int(m.sum())} | " + " | ".join(f"{c / max(e.sum(), 1e-300):.3f}" for c in cells) + " |")
     if args.register:
         result = reg.run()
