@@ -37,10 +37,11 @@ import morphmodes_vol as mm  # noqa: E402
 from morphmodes_vol.mesh import load_mesh  # noqa: E402
 from morphmodes_vol.metrics import ground_truth_error  # noqa: E402
 from morphmodes_vol.pointcloud import PointCloud  # noqa: E402
+from morphmodes_vol.sdf.confidence import front_cosine  # noqa: E402
 from morphmodes_vol.sdf.source import closest_points  # noqa: E402
 from morphmodes_vol.variants import VARIANTS, target_variant  # noqa: E402
 
-_SIDE = 0.2  # the cosine that separates in front / beside / behind
+_SIDE = 0.2  # in front / beside / behind: the ends of the confidence's ramp (sdf/confidence.py)
 _INVENTED = 0.02  # farther than this fraction of the diagonal from every point: invented
 
 
@@ -48,10 +49,7 @@ def regions(reg: mm.Registration, cp) -> dict[str, np.ndarray]:
     """Boolean masks ``(N,)`` over the grid nodes of ``reg``: in front / beside / behind
     its target, near (within the band) or far; ``cp`` the nodes' closest points on the
     target's surface."""
-    Y, F, Q = reg.Y, reg.target_sdf_faces, reg.Q
-    n = np.cross(Y[F[:, 1]] - Y[F[:, 0]], Y[F[:, 2]] - Y[F[:, 0]])
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
-    cosine = np.einsum("ij,ij->i", Q - cp.points, n[cp.faces]) / np.maximum(cp.distance, 1e-300)
+    cosine = front_cosine(reg.Y, reg.target_sdf_faces, reg.Q, cp)
     near = np.abs(reg.g) < reg.options.band_cells * reg.quadrature.spacing
     out = {}
     for side, m in (("in front", cosine > _SIDE), ("beside", np.abs(cosine) <= _SIDE), ("behind", cosine < -_SIDE)):
@@ -78,11 +76,10 @@ def main() -> int:
         raise SystemExit("the target is an SDF: no surface to split the grid by")
     truth = reg.normalization.apply(Vt)
     sdf = reg.full_energy()
-    ev = sdf.evaluate(truth)
+    ev = reg.with_terms(sdf).evaluate(truth)  # Eq. (3)'s residual, plus the added terms
     e = sdf.weights * ev.residual**2
-    total = reg.with_terms(sdf).evaluate(truth)
-    print(f"{args.pair}, {args.kind}: objective at the ground truth {total.energy:.3e}, of which "
-          f"Eq. (3) {e.sum():.3e} and the added terms (the isometry prior) {total.extra_energy:.3e}")
+    print(f"{args.pair}, {args.kind}: objective at the ground truth {ev.energy:.3e}, of which "
+          f"Eq. (3) {e.sum():.3e} and the added terms (the isometry prior) {ev.extra_energy:.3e}")
     cp = closest_points(reg.Y, reg.target_sdf_faces, reg.Q)
     cloud = isinstance(target, PointCloud)
     header = "| nodes | count | share of Eq. (3) | of it where f > g |"
@@ -98,7 +95,7 @@ def main() -> int:
         result = reg.run()
         X = reg.normalization.apply(result.vertices)
         print(f"registered: error {ground_truth_error(result.vertices, Vt):.4f}, objective "
-              f"{reg.objective(X):.3e} (the ground truth's {total.energy:.3e})")
+              f"{reg.objective(X):.3e} (the ground truth's {ev.energy:.3e})")
     return 0
 
 

@@ -24,7 +24,7 @@ from .grid import Grid
 from .source import closest_points, is_closed
 from .target import DenseTargetSDF
 
-__all__ = ["target_confidence"]
+__all__ = ["target_confidence", "front_cosine"]
 
 _SLOPE = 0.2  # front: the cosine over which the weight goes from 0 to 1
 
@@ -32,6 +32,27 @@ _SLOPE = 0.2  # front: the cosine over which the weight goes from 0 to 1
 def _smoothstep(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
     t = np.clip((x - lo) / (hi - lo), 0.0, 1.0)
     return t * t * (3 - 2 * t)
+
+
+def front_cosine(V, F, Q, closest) -> np.ndarray:
+    """The cosine between ``q - p`` and the normal of the triangle of ``p``, ``(k,)``, for
+    each point ``q`` of ``Q (k, 3)`` and its closest point ``p`` on the mesh ``(V, F)``
+    (``closest``, :func:`~morphmodes_vol.sdf.source.closest_points` of ``Q``): 1 straight in
+    front of the surface, -1 straight behind it, near 0 beside its rim.
+
+    Examples
+    --------
+    >>> from morphmodes_vol.primitives import icosphere
+    >>> V, F = icosphere(2)
+    >>> cap = F[V[F].mean(axis=1)[:, 2] > 0]
+    >>> Q = np.array([[0, 0, 1.4], [0, 0, 0.5]])
+    >>> np.round(front_cosine(V, cap, Q, closest_points(V, cap, Q)), 1)  # above, inside
+    array([ 1., -1.])
+    """
+    normal = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+    d = np.maximum(closest.distance, 1e-300)
+    return np.einsum("ij,ij->i", Q - closest.points, normal[closest.faces]) / d
 
 
 def target_confidence(V, F, grid: Grid, band: float) -> DenseTargetSDF | None:
@@ -65,10 +86,6 @@ def target_confidence(V, F, grid: Grid, band: float) -> DenseTargetSDF | None:
         return None
     Q = grid.points()
     cp = closest_points(V, F, Q)
-    normal = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
-    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
-    d = np.maximum(cp.distance, 1e-300)
-    cosine = np.einsum("ij,ij->i", Q - cp.points, normal[cp.faces]) / d
     near = np.maximum(0.0, 1 - (cp.distance / band) ** 2) ** 2
-    c = np.maximum(_smoothstep(cosine, -_SLOPE, _SLOPE), near)
+    c = np.maximum(_smoothstep(front_cosine(V, F, Q, cp), -_SLOPE, _SLOPE), near)
     return DenseTargetSDF(grid, c.reshape(grid.shape))
