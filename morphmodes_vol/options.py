@@ -143,8 +143,6 @@ class RegistrationOptions:
     init_candidates : int
         Orientations refined: the unrotated one and the best ``init_candidates - 1`` of the
         28 screened.
-    init_lm_iterations_per_stage : int
-        ``lm_iterations_per_stage`` of the run from the aligned start.
     init_keep_rest : bool
         Run Algorithm 1 from the rest pose as well as from the aligned start.
     coarse_starts : bool
@@ -232,7 +230,7 @@ class RegistrationOptions:
     optimizer: Optimizer = "lm"
     lm_damping: float = 1e-3
     lm_max_step: float = 0.1
-    lm_iterations_per_stage: int = 3
+    lm_iterations_per_stage: int = 8
     lm_final_iterations: int | None = None
     lm_stall_decrease: float = 0.01
     preconditioner: Preconditioner = "block"
@@ -254,7 +252,6 @@ class RegistrationOptions:
     start_merge_distance: float = 0.005
     start_strain_ratio: float = 2.0
     start_choice_modes: int | None = 20
-    init_lm_iterations_per_stage: int = 3
     coarse_starts: bool = True
     overlap_field: bool = True
     isometry_weight: float = 3e-4
@@ -432,7 +429,6 @@ _CHECKS = {
     "initialization": (_one_of(INITIALIZATIONS), f"one of {INITIALIZATIONS}"),
     "init_grid": (_int(8, 256), "an integer in [8, 256]"),
     "init_candidates": (_int(1, 29), "an integer in [1, 29]"),
-    "init_lm_iterations_per_stage": _COUNT,
     "init_keep_rest": _BOOL, "coarse_starts": _BOOL,
     "select_energy_factor": (_real(1), "a finite number >= 1"), "start_check_modes": _COUNT,
     "start_merge_distance": (_real(0), "a finite non-negative float"),

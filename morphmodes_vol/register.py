@@ -523,13 +523,11 @@ class Registration:
         init_summary = {}
         candidates = []  # the initialization's other orientations (warped_candidates)
         if self.options.initialization != "none":
-            aligned_options = self.options.replace(
-                lm_iterations_per_stage=self.options.init_lm_iterations_per_stage)
             alignment = self.initial_alignment()
             init_summary = alignment.summary()
             own = alignment.start_indices()
             aligned = [(label, self.start_coefficients(alignment.refined_matrices[i]),
-                        aligned_options) for label, i in own.items()]
+                        self.options) for label, i in own.items()]
             if self.options.warped_pass and self.options.warped_candidates:
                 candidates = [(f"candidate {i}", self.start_coefficients(alignment.refined_matrices[i]))
                               for i in alignment.candidate_indices()]

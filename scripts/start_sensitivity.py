@@ -3,7 +3,7 @@ the same alignment turned by a few degrees about random axes through the source'
 Algorithm 1 from each of those starts (the aligned start only, ``init_keep_rest=False``).
 
     python scripts/start_sensitivity.py --pose lion-05 [--trials 6] [--degrees 2]
-                                        [--set init_lm_iterations_per_stage=10 ...]
+                                        [--set lm_iterations_per_stage=10 ...]
 
 Trial 0 is the unturned alignment. Prints, per trial, the ground-truth error, the number of
 SDF evaluations and the energy after stages 1, 4, 7, ... (a markdown table), and the spread.

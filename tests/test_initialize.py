@@ -401,10 +401,12 @@ def test_a_start_stops_early_when_merged_or_outstretched():
 
 def test_the_choice_between_starts_made_early_is_the_final_choice_at_that_stage():
     """With ``start_choice_modes=k`` the run kept is the one a registration with ``k``
-    modes keeps, and only it goes on to ``modes``."""
+    modes keeps, and only it goes on to ``modes``. (One stall threshold for every stage:
+    the schedule decays over ``modes``, so the two would otherwise end stages apart.)"""
     X, F = asymmetric_blob()
     Y = bend(X, 0.4, axis=2, towards=0) + [0.05, 0.0, 0.0]
-    opts = mm.RegistrationOptions(grid=16, modes=5, start_check_modes=99, warped_pass=False)
+    opts = mm.RegistrationOptions(grid=16, modes=5, start_check_modes=99, warped_pass=False,
+                                  stall_end=mm.RegistrationOptions().stall_start)
     short = mm.register((X, F), (Y, F), opts.replace(modes=3))
     r = mm.register((X, F), (Y, F), opts.replace(start_choice_modes=3))
     starts = {s["start"]: s for s in r.metrics["starts"]}

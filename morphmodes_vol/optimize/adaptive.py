@@ -292,7 +292,8 @@ class _LevenbergMarquardtStepper:
             faulty = ev is None
             rho = -np.inf if faulty else (current.energy - ev.energy) / predicted
             if rho > options.armijo:
-                self.damping *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                # Nielsen: 1/3 for rho >= 1 (clipped: a tiny predicted fall makes rho overflow the cube)
+                self.damping *= max(1.0 / 3.0, 1.0 - (2.0 * min(rho, 1.0) - 1.0) ** 3)
                 self.nu = 2.0
                 return _Step(T=trial_T, evaluation=ev, step_rms=rms)
             self.damping *= self.nu
