@@ -54,7 +54,7 @@ from typing import Callable
 
 import numpy as np
 
-from .optimize.gauss_newton import NormalEquations, lm_solve
+from .optimize.gauss_newton import NormalEquations, damping_factor, lm_solve
 from .runs import ascending
 from .sdf.grid import Grid, trilinear_sample
 from .sdf.source import _scene, inside, signed_distance
@@ -490,7 +490,7 @@ def _refine(field: RigidSourceField, Q: np.ndarray, g: np.ndarray, weight: np.nd
             spent += 1
             rho = (ev.energy - trial_ev.energy) / predicted
             if np.isfinite(trial_ev.energy) and rho > 1e-4:
-                damping *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                damping *= damping_factor(rho)
                 nu = 2.0
                 decrease = ev.energy - trial_ev.energy
                 S, ev, accepted = trial, trial_ev, True

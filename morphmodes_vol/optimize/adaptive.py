@@ -31,7 +31,7 @@ from ..eigenbasis.lbs import LBSBasis
 from ..energy import EnergyEvaluation, SDFEnergy
 from ..errors import OptionError
 from ..options import OPTIMIZERS, PRECONDITIONERS, RegistrationOptions
-from .gauss_newton import (NormalEquations, face_corner_pattern, lm_solve, subspace_metric,
+from .gauss_newton import (NormalEquations, damping_factor, face_corner_pattern, lm_solve, subspace_metric,
                            subspace_normal_equations)
 from .linesearch import armijo_backtracking
 
@@ -292,8 +292,7 @@ class _LevenbergMarquardtStepper:
             faulty = ev is None
             rho = -np.inf if faulty else (current.energy - ev.energy) / predicted
             if rho > options.armijo:
-                # Nielsen: 1/3 for rho >= 1 (clipped: a tiny predicted fall makes rho overflow the cube)
-                self.damping *= max(1.0 / 3.0, 1.0 - (2.0 * min(rho, 1.0) - 1.0) ** 3)
+                self.damping *= damping_factor(rho)
                 self.nu = 2.0
                 return _Step(T=trial_T, evaluation=ev, step_rms=rms)
             self.damping *= self.nu

@@ -34,7 +34,7 @@ import scipy.sparse as sp
 from ..eigenbasis.lbs import LBSBasis
 from ..energy import EnergyEvaluation
 
-__all__ = ["subspace_normal_equations", "subspace_metric", "lm_solve", "NormalEquations",
+__all__ = ["subspace_normal_equations", "subspace_metric", "lm_solve", "damping_factor", "NormalEquations",
            "VertexBlocks", "SparsePattern", "face_corner_pattern"]
 
 
@@ -268,3 +268,16 @@ def lm_solve(normal: NormalEquations, metric: np.ndarray, damping: float) -> np.
         return np.linalg.solve(lhs, -normal.g)
     except np.linalg.LinAlgError:
         return np.linalg.lstsq(lhs, -normal.g, rcond=None)[0]
+
+
+def damping_factor(rho: float) -> float:
+    """Nielsen's factor for the damping after an accepted step, ``max(1/3, 1 - (2 rho -
+    1)^3)``, ``rho`` the true over the predicted decrease: 1/3 from ``rho = 1`` on, so
+    ``rho`` is clipped there (a tiny predicted decrease would overflow the cube).
+
+    Examples
+    --------
+    >>> damping_factor(0.5), damping_factor(1.0), damping_factor(1e300)
+    (1.0, 0.3333333333333333, 0.3333333333333333)
+    """
+    return max(1.0 / 3.0, 1.0 - (2.0 * min(rho, 1.0) - 1.0) ** 3)
