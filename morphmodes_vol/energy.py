@@ -30,7 +30,7 @@ import numpy as np
 
 from .sdf.source import SignMethod, signed_distance
 
-__all__ = ["SDFEnergy", "EnergyEvaluation", "KnownQueries", "AddedTerm"]
+__all__ = ["SDFEnergy", "EnergyEvaluation", "AddedTerm"]
 
 
 @dataclass(frozen=True)
@@ -132,41 +132,14 @@ class SDFEnergy:
         self.samples = int(samples)
         self.evaluations = 0
         self.points_queried = 0
-        self.last_value: np.ndarray | None = None
         self.seconds = 0.0
 
-    def refresh(self, X: np.ndarray, force: bool = False) -> bool:
-        """Fixed quadrature: nothing to refresh (see :class:`morphmodes_vol.quadrature.BandEnergy`)."""
-        return False
-
-    def evaluate(self, X: np.ndarray, known: "KnownQueries | None" = None) -> EnergyEvaluation:
-        """Energy and vertex gradient at vertices ``X (n, 3)``.
-
-        ``known``: the queries of some points already answered for these very vertices
-        (:class:`KnownQueries`; a band refresh keeps most points,
-        :mod:`morphmodes_vol.quadrature`); only the other points are queried, and the
-        result is the same as without.
-        """
+    def evaluate(self, X: np.ndarray) -> EnergyEvaluation:
+        """Energy and vertex gradient at vertices ``X (n, 3)``."""
         t0 = time.perf_counter()
-        if known is None:
-            sd = signed_distance(X, self.F, self.Q, sign=self.sign, samples=self.samples, oriented=True)
-            value, faces, bary, normal = sd.value, sd.closest.faces, sd.closest.barycentrics, sd.normal
-            self.points_queried += len(value)
-        else:
-            k = self.Q.shape[0]
-            if known.mask.shape != (k,):
-                raise ValueError(f"known.mask must have shape ({k},), got {known.mask.shape}")
-            new = ~known.mask
-            sd = signed_distance(X, self.F, self.Q[new], sign=self.sign, samples=self.samples,
-                                 oriented=True)
-            value, faces = np.empty(k), np.empty(k, dtype=np.int64)
-            bary, normal = np.empty((k, 3)), np.empty((k, 3))
-            for out, old, fresh in ((value, known.value, sd.value), (faces, known.faces, sd.closest.faces),
-                                    (bary, known.barycentrics, sd.closest.barycentrics),
-                                    (normal, known.normal, sd.normal)):
-                out[known.mask], out[new] = old, fresh
-            self.points_queried += int(new.sum())
-        self.last_value = value  # the signed distances, for a band refresh (quadrature.py)
+        sd = signed_distance(X, self.F, self.Q, sign=self.sign, samples=self.samples, oriented=True)
+        value, faces, bary, normal = sd.value, sd.closest.faces, sd.closest.barycentrics, sd.normal
+        self.points_queried += len(value)
         r = value - self.g
         wr = self.weights * r
         energy = float(wr @ r)
@@ -192,23 +165,9 @@ class SDFEnergy:
         )
 
 
-@dataclass(frozen=True)
-class KnownQueries:
-    """Source-SDF queries already answered at some quadrature points (for the vertices
-    about to be evaluated): ``mask (k,) bool`` marks them among the energy's ``k`` points;
-    ``value (j,)``, ``faces (j,)``, ``barycentrics (j, 3)`` and ``normal (j, 3)`` are theirs
-    (``j = mask.sum()``), as :class:`EnergyEvaluation` holds them."""
-
-    mask: np.ndarray
-    value: np.ndarray
-    faces: np.ndarray
-    barycentrics: np.ndarray
-    normal: np.ndarray
-
-
 class AddedTerm:
     """Base of a term added to an energy with the interface of :class:`SDFEnergy`
-    (``evaluate``, ``refresh``, ``F``, ``weights``, ``evaluations``,
+    (``evaluate``, ``F``, ``weights``, ``evaluations``,
     ``seconds``), so the optimizers of :mod:`morphmodes_vol.optimize` see no difference.
 
     A subclass defines :meth:`term` (its value and vertex gradient) and
@@ -231,14 +190,8 @@ class AddedTerm:
     F = property(lambda self: self.inner.F)
     weights = property(lambda self: self.inner.weights)
     evaluations = property(lambda self: self.inner.evaluations)
-    partial_evaluations = property(lambda self: getattr(self.inner, "partial_evaluations", 0))
     seconds = property(lambda self: self.inner.seconds)
-    # the cost counters of the quadratures (morphmodes_vol.quadrature)
     points_queried = property(lambda self: self.inner.points_queried)
-    centres_queried = property(lambda self: getattr(self.inner, "centres_queried", 0))
-
-    def refresh(self, X: np.ndarray, force: bool = False) -> bool:
-        return self.inner.refresh(X, force)
 
     def term(self, X: np.ndarray) -> tuple[float, np.ndarray]:
         """The term's value and its vertex gradient ``(n, 3)`` at ``X (n, 3)``."""

@@ -109,7 +109,7 @@ class IsometryEnergy(AddedTerm):
 
     Parameters
     ----------
-    inner : SDFEnergy, BandEnergy or another energy with that interface
+    inner : SDFEnergy or another energy with that interface
     X0 : (n, 3) float
         Rest pose (normalized frame).
     faces : (f, 3) int

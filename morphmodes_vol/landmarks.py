@@ -232,7 +232,7 @@ class LandmarkEnergy(AddedTerm):
 
     Parameters
     ----------
-    inner : SDFEnergy or BandEnergy
+    inner : SDFEnergy
         Eq. (3).
     indices : (L,) int
         Landmark source vertices.

@@ -60,15 +60,17 @@ class RegistrationOptions:
         Nodes of the dense target-SDF grid along the longest side; ``None``: ``grid``.
     quadrature : {"full", "band"}
         ``"full"``: every grid node (Eq. 3). ``"band"``: every node within ``band_cells``
-        spacings of either surface and one per block of ``block_factor^3`` nodes elsewhere,
-        weighted by the block's volume (:mod:`morphmodes_vol.quadrature`).
+        spacings of the target's surface and one per block of ``block_factor^3`` nodes
+        elsewhere, weighted by the block's volume; set by the target alone, once
+        (:mod:`morphmodes_vol.quadrature`, docs/decisions/0021); an open target (a partial
+        scan) keeps every node. Runs are compared on every node either way.
     band_cells : float
-        Half width of the band, in spacings; also the band around an open target within
-        which its field is trusted on both sides (:mod:`morphmodes_vol.sdf.confidence`).
+        Half width of the band quadrature's fine band, in spacings.
+    confidence_band_cells : float
+        Half width, in spacings, of the band around an open target within which its field
+        is trusted on both sides (:mod:`morphmodes_vol.sdf.confidence`).
     block_factor : int
-        Nodes per block side away from the surfaces (``"band"``).
-    band_margin_cells : float
-        Vertex motion, in spacings, after which the band is recomputed.
+        Nodes per block side away from the target's surface (``"band"``).
     padding : float
         Margin on every side of the union bounding box, a fraction of its diagonal.
     modes : int
@@ -213,9 +215,9 @@ class RegistrationOptions:
     grid: int = 64
     target_grid: int | None = None
     quadrature: Quadrature = "full"
-    band_cells: float = 2.0
+    band_cells: float = 4.0
+    confidence_band_cells: float = 2.0
     block_factor: int = 2
-    band_margin_cells: float = 4.0
     padding: float = 0.1
     modes: int = 20
     initial_modes: int = 1
@@ -406,8 +408,8 @@ _CHECKS = {
     "grid": (_int(4, 1024), "an integer in [4, 1024]"),
     "target_grid": (_optional(_int(4, 1024)), "None or an integer in [4, 1024]"),
     "quadrature": (_one_of(QUADRATURES), f"one of {QUADRATURES}"),
-    "band_cells": _POSITIVE, "block_factor": (_int(1, 16), "an integer in [1, 16]"),
-    "band_margin_cells": _POSITIVE, "padding": (_real(0, 2), "a float in [0, 2]"),
+    "band_cells": _POSITIVE, "confidence_band_cells": _POSITIVE, "block_factor": (_int(1, 16), "an integer in [1, 16]"),
+    "padding": (_real(0, 2), "a float in [0, 2]"),
     "modes": (_int(1, 500), "an integer in [1, 500]"), "initial_modes": _COUNT,
     "stall_start": _POSITIVE, "stall_end": _POSITIVE,
     "max_iterations_per_stage": _COUNT, "max_iterations": _COUNT, "max_step": _POSITIVE,

@@ -29,7 +29,7 @@ from .mesh import MeshLike, Normalization, as_mesh, joint_normalization
 from .metrics import ground_truth_error, shape_metrics
 from .optimize import OptimizationHistory, ProgressEvent
 from .options import RegistrationOptions
-from .quadrature import BandEnergy, every_other_node
+from .quadrature import band_quadrature, every_other_node
 from .repair import sdf_faces
 from .report import Outcome, correspondence, cost_metrics, landmark_metrics, result_metrics
 from .runs import StartRunner, comparison_counters
@@ -96,9 +96,8 @@ class RegistrationResult:
         ``stopped_after_modes`` / ``stop_reason``, ``merged``, ``outstretched``,
         ``not chosen``, when it was stopped early; ``None`` otherwise); ``init_*``: the
         initial alignment (:meth:`InitialAlignment.summary`). Cost: ``evaluations_all_starts`` (every run's
-        source-SDF evaluations; ``coarse_evaluations_all_starts`` and
-        ``partial_evaluations_all_starts`` of them on the coarse pass's grid and after band
-        refreshes), ``comparison_evaluations`` (the objectives that compared runs, on every
+        source-SDF evaluations; ``coarse_evaluations_all_starts`` of them on the
+        coarse pass's grid), ``comparison_evaluations`` (the objectives that compared runs, on every
         node of the fine or the coarse grid, not among the former), ``points_queried``
         (every point sent to the source mesh's closest-point queries, the alignment's source
         field included) and ``full_grid_equivalents`` (that over the grid's nodes: the cost in
@@ -296,10 +295,11 @@ class Registration:
         self.g = self.sample_target(self.Q)
         # an open target's field is known near it and in front of it only (sdf/confidence.py)
         self.confidence = None if self.Y is None else target_confidence(
-            self.Y, self.target_sdf_faces, self.target_grid, self.options.band_cells * self.quadrature.spacing)
+            self.Y, self.target_sdf_faces, self.target_grid,
+            self.options.confidence_band_cells * self.quadrature.spacing)
         self.c = None if self.confidence is None else self.confidence.sample(self.Q)
 
-    def energy(self) -> SDFEnergy | BandEnergy:
+    def energy(self) -> SDFEnergy:
         """A fresh evaluator of the objective for this pair (its evaluation counter starts
         at 0): Eq. (3) on the quadrature ``options.quadrature`` selects, plus the isometry
         prior and the landmarks when on."""
@@ -311,7 +311,7 @@ class Registration:
         cells), for the coarse pass of ``coarse_starts``."""
         return self.with_terms(self._coarse_sdf())
 
-    def _coarse_sdf(self, kind: str | None = None) -> SDFEnergy | BandEnergy:
+    def _coarse_sdf(self, kind: str | None = None) -> SDFEnergy:
         """Eq. (3) on every other node of the quadrature grid (spacing ``2h``, the fine
         grid's target values subsampled), on the quadrature ``kind`` (as
         :meth:`_quadrature_energy`)."""
@@ -333,21 +333,19 @@ class Registration:
                               o.landmark_weight, volume)
 
     def _quadrature_energy(self, grid: Grid, g: np.ndarray, Q: np.ndarray,
-                           kind: str | None = None, c: np.ndarray | None = None) -> SDFEnergy | BandEnergy:
+                           kind: str | None = None, c: np.ndarray | None = None) -> SDFEnergy:
         """Eq. (3) on the nodes ``Q (N, 3)`` of ``grid`` (target values ``g (N,)``, the
         confidence of an open target's field ``c (N,)`` multiplying the weights), on the
         quadrature ``kind`` (default ``options.quadrature``); band widths are in cells of
-        ``grid``."""
+        ``grid``. An open target's Eq. (3) is on every node whatever the quadrature: the
+        unseen side of the source ends away from the observed surface, outside a band around
+        it (docs/decisions/0021)."""
         o = self.options
-        if (kind or o.quadrature) == "band":
-            h = grid.spacing
-            return BandEnergy(
-                self.source_sdf_faces, grid, g, self.sample_target,
-                band=o.band_cells * h, factor=o.block_factor, margin=o.band_margin_cells * h,
-                sign=o.source_sign, samples=o.occupancy_samples, points=Q,
-                confidence=None if c is None else (c, self.confidence.sample),
-            )
-        weight = grid.cell_volume if c is None else grid.cell_volume * c
+        if (kind or o.quadrature) == "band" and c is None:
+            Q, g, weight = band_quadrature(grid, g, self.sample_target, band=o.band_cells * grid.spacing,
+                                           factor=o.block_factor, points=Q)
+        else:
+            weight = grid.cell_volume if c is None else grid.cell_volume * c
         return SDFEnergy(self.source_sdf_faces, Q, g, weight, sign=o.source_sign, samples=o.occupancy_samples)
 
     def sample_target(self, points: np.ndarray) -> np.ndarray:
@@ -385,7 +383,7 @@ class Registration:
 
     def runs_on_full_grid(self) -> bool:
         """Whether a run's own final energy is already the objective on the full grid."""
-        return self.options.quadrature == "full"
+        return self.options.quadrature == "full" or self.c is not None  # an open target: every node
 
     def objective(self, X: np.ndarray) -> float:
         """The objective at the vertices ``X (n, 3)`` (normalized frame) with Eq. (3) on

@@ -109,14 +109,11 @@ def cost_metrics(reg: "Registration", o: "Outcome", compared) -> dict:
     m["coarse_evaluations_all_starts"] = (sum(r.result.history.evaluations for r in runs
                                               if r.coarse)
                                           + rm.get("coarse_evaluations_all_starts", 0))
-    # of which after a band refresh, querying only the points new to the band
-    m["partial_evaluations_all_starts"] = (sum(r.result.history.partial_evaluations for r in runs)
-                                           + rm.get("partial_evaluations_all_starts", 0))
     # the objectives that compared runs (every node of the fine or the coarse grid),
     # not counted above
     m["comparison_evaluations"] = int(compared[0]) + rm.get("comparison_evaluations", 0)
-    # every point sent to the source mesh's closest-point queries: the runs' evaluations
-    # and band refreshes, the comparisons, the initial alignment's source field; over the
+    # every point sent to the source mesh's closest-point queries: the runs' evaluations,
+    # the comparisons, the initial alignment's source field; over the
     # grid's nodes, the cost in evaluations of Eq. (3) on the full grid (the paper's)
     queried = (sum(r.points_queried for r in runs) + int(compared[1])
                + int(o.init_summary.get("init_field_nodes", 0)) + rm.get("points_queried", 0)

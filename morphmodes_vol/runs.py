@@ -82,9 +82,8 @@ def rms(D: np.ndarray) -> float:
 
 def points_queried(energy) -> int:
     """Points an evaluator (:meth:`Registration.energy` or :meth:`coarse_energy`) sent to the
-    source mesh's closest-point queries: at its evaluations and, on the band quadrature, at
-    the block centres its refreshes asked."""
-    return int(energy.points_queried + getattr(energy, "centres_queried", 0))
+    source mesh's closest-point queries."""
+    return int(energy.points_queried)
 
 
 def comparison_counters(evaluators) -> tuple[int, int, float]:

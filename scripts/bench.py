@@ -94,8 +94,6 @@ def run_ours(source, target, truth, overrides: dict, preset: str = "default") ->
         "error": mm.ground_truth_error(result.vertices, truth_V),
         "identity_error": mm.ground_truth_error(reg.source_vertices, truth_V),
         "evaluations": evaluations,
-        # after a band refresh: only the points new to the band are queried
-        "partial_evaluations": result.metrics.get("partial_evaluations_all_starts", 0),
         # on the coarse pass's grid (every other node), each a few times cheaper
         "coarse_evaluations": result.metrics.get("coarse_evaluations_all_starts", 0),
         "init_evaluations": result.metrics.get("init_evaluations", 0),
@@ -105,7 +103,6 @@ def run_ours(source, target, truth, overrides: dict, preset: str = "default") ->
         # in evaluations on the full grid (each of --preset paper's is one)
         "full_grid_equivalents": result.metrics.get("full_grid_equivalents"),
         "start": result.metrics.get("start", "rest"),
-        "refreshes": len(h.refreshes),
         "steps": len(h.step_rms),
         "modes": result.modes,
         "status": result.status,
@@ -164,8 +161,7 @@ def pairs(selected: list[str]) -> list[tuple[str, object, object]]:
 def _row(pair: str, method: str, r: dict, nricp_wall: float | None) -> str:
     ratio = f"{r['wall_s'] / nricp_wall:.2f}" if nricp_wall else ""
     ev = r.get("evaluations", "")
-    notes = [f"{r[k]} {name}" for k, name in (("coarse_evaluations", "coarse"),
-                                              ("partial_evaluations", "partial")) if r.get(k)]
+    notes = [f"{r[k]} {name}" for k, name in (("coarse_evaluations", "coarse"),) if r.get(k)]
     if notes:
         ev = f"{ev} ({', '.join(notes)})"
     if r.get("comparison_evaluations"):

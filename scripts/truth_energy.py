@@ -7,7 +7,7 @@ is evaluated at the ground truth (the pose's own vertices: the source's vertices
 where they belong). Eq. (3)'s part is split by where the nodes lie relative to the target:
 in front of it (the cosine between ``q - p`` and the normal of the closest target triangle
 above 0.2), beside it (within +-0.2) or behind it, near it (``|g|`` within the band of
-``band_cells`` spacings) or far; with the share where the truth is farther from the node
+``confidence_band_cells`` spacings) or far; with the share where the truth is farther from the node
 than the target (``f > g``); for a point cloud, also the share where the closest point of the
 target's surface lies farther than 2% of the diagonal from every point: surface the
 reconstruction invented. With ``--register``, the registration is run too and its
@@ -50,7 +50,7 @@ def regions(reg: mm.Registration, cp) -> dict[str, np.ndarray]:
     its target, near (within the band) or far; ``cp`` the nodes' closest points on the
     target's surface."""
     cosine = front_cosine(reg.Y, reg.target_sdf_faces, reg.Q, cp)
-    near = np.abs(reg.g) < reg.options.band_cells * reg.quadrature.spacing
+    near = np.abs(reg.g) < reg.options.confidence_band_cells * reg.quadrature.spacing
     out = {}
     for side, m in (("in front", cosine > _SIDE), ("beside", np.abs(cosine) <= _SIDE), ("behind", cosine < -_SIDE)):
         out[f"{side}, near"] = m & near

@@ -345,9 +345,11 @@ def test_disjoint_bounding_boxes_move_towards_the_target(caplog):
     V, F, _ = small_pair()
     far = V + [1.5, 0, 0]  # the boxes do not overlap: 0.7 of the capsule's length apart
     # the defaults (initial alignment, Levenberg-Marquardt) and one Levenberg-Marquardt run
-    # from the rest pose both close most of the gap
+    # from the rest pose both close most of the gap, on the band quadrature (on a grid of 32:
+    # on one of 16 its 4 spacings are a quarter of the box, and the run from the rest pose
+    # stretched the source out of the box, docs/decisions/0021)
     for init in ("rigid", "none"):
-        r = mm.register((V, F), (far, F), ground_truth=far, grid=16, modes=2, max_iterations=40,
+        r = mm.register((V, F), (far, F), ground_truth=far, grid=32, modes=2, max_iterations=40,
                         optimizer="lm", quadrature="band", initialization=init)
         assert np.isfinite(r.vertices).all()
         assert r.metrics["ground_truth_error"] < 0.5 * r.metrics["identity_error"]

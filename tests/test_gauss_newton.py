@@ -12,7 +12,7 @@ from morphmodes_vol.eigenbasis import LBSBasis, skinning_eigenmodes, to_paper_z
 from morphmodes_vol.energy import SDFEnergy
 from morphmodes_vol.optimize.gauss_newton import lm_solve, subspace_metric, subspace_normal_equations
 from morphmodes_vol.primitives import affine, capsule
-from morphmodes_vol.quadrature import BandEnergy, GridBlocks, every_other_node
+from morphmodes_vol.quadrature import GridBlocks, band_quadrature, every_other_node
 from morphmodes_vol.sdf import Grid, signed_distance
 from morphmodes_vol.register import ground_truth_error
 
@@ -94,8 +94,7 @@ def _band_pair(V, F, target, resolution=40):
     gfield = signed_distance(target, F, grid.points()).value
     sample = lambda P: signed_distance(target, F, P).value  # noqa: E731 (exact target SDF)
     full = SDFEnergy(F, grid.points(), gfield, grid.cell_volume)
-    h = grid.spacing
-    band = BandEnergy(F, grid, gfield, sample, band=3 * h, factor=4, margin=2 * h)
+    band = SDFEnergy(F, *band_quadrature(grid, gfield, sample, band=3 * grid.spacing, factor=4))
     return full, band, grid
 
 
@@ -114,91 +113,40 @@ def test_band_quadrature_approximates_the_full_grid(lumpy_sphere):
     assert cos > 0.98
 
 
-def test_band_keeps_every_node_near_the_moved_source_until_refreshed(lumpy_sphere):
+def test_band_quadrature_keeps_every_node_near_the_target(lumpy_sphere):
+    """Every node within the band of the target's surface is a quadrature point of weight
+    h^3; the others are block centres standing for all their nodes; at the target itself
+    the energy is zero."""
     V, F = lumpy_sphere
-    full, band, grid = _band_pair(V, F, V * 1.1)
-    band.evaluate(V)
-    assert not band.refresh(V + 0.5 * band.margin)  # within the margin: same quadrature
-    moved = V + [band.margin * 0.9, 0.0, 0.0]
-    d = np.abs(signed_distance(moved, F, grid.points()).value)
-    near_nodes = grid.points()[d < band.band]
-    fine = {tuple(np.round(q, 9)) for q in band.Q}
-    assert all(tuple(np.round(q, 9)) in fine for q in near_nodes)
-    assert band.refresh(V + [3 * band.margin, 0.0, 0.0])
+    target = V * 1.1
+    full, band, grid = _band_pair(V, F, target)
+    P, h = grid.points(), grid.spacing
+    near_nodes = P[np.abs(full.g) < 3 * h]
+    fine = {tuple(np.round(q, 9)): w for q, w in zip(band.Q, band.weights)}
+    assert all(fine.get(tuple(np.round(q, 9))) == grid.cell_volume for q in near_nodes)
+    far = band.weights > grid.cell_volume
+    assert far.any() and np.all(np.abs(band.g[far]) > 3 * h)
+    assert band.evaluate(target).energy < 1e-12 * band.weights.sum()
 
 
-def test_evaluation_after_a_refresh_reuses_shared_points_with_identical_results(lumpy_sphere):
-    """The optimizer's sequence: an evaluation, a refresh at the same vertices, the evaluation
-    there on the new band. The second queries only the points new to the band, and equals
-    (bit for bit) a fresh band quadrature's full evaluation at those vertices."""
-    V, F = lumpy_sphere
-    _, band, _ = _band_pair(V, F, V * 1.1)
-    band.evaluate(V)
-    moved = V + [3 * band.margin, 0.0, 0.0]
-    band.evaluate(moved)  # on the old band (a trial step)
-    assert band.refresh(moved)
-    queried = band.points_queried
-    got = band.evaluate(moved)
-    new_points = band.points_queried - queried
-    assert band.partial_evaluations == 1 and 0 < new_points < 0.9 * band.Q.shape[0]
-    _, fresh, _ = _band_pair(V, F, V * 1.1)
-    fresh.refresh(moved, force=True)
-    want = fresh.evaluate(moved)
-    assert fresh.partial_evaluations == 0 and fresh.points_queried == fresh.Q.shape[0]
-    np.testing.assert_array_equal(band.Q, fresh.Q)
-    assert got.energy == want.energy
-    for name in ("gradient", "residual", "closest_faces", "barycentrics", "normal"):
-        np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
-    # another state on the same band: a full evaluation again
-    band.evaluate(moved * 1.01)
-    assert band.partial_evaluations == 1
+def test_the_band_keeps_every_node_of_an_open_target():
+    """On a closed target the band quadrature has fewer points than the grid; an open one
+    (the faces seen from one side) keeps every node, weighted by its confidence, and its runs'
+    energies are the objective itself."""
+    from morphmodes_vol.variants import partial_view
 
-
-def test_refresh_queries_only_centres_the_bounds_cannot_settle(lumpy_sphere):
-    """Identity: along a sequence of motions, each refresh (querying only the block centres
-    whose lower distance bound is within reach, none near the target) gives the quadrature a
-    fresh band (every centre queried) gives at those vertices."""
-    V, F = lumpy_sphere
-    _, band, _ = _band_pair(V, F, V * 1.1)
-    band.refresh(V, force=True)
-    first = band.centres_queried
-    assert 0 < first == int((~band.near_target).sum())  # all but the target's
-    rng = np.random.default_rng(1)
-    X = V.copy()
-    for k in range(6):
-        # a drift, a shear and a bump, each refresh after at least the margin
-        X = X + [0.7 * band.margin, 0.0, 0.3 * band.margin] + 0.4 * band.margin * np.sin(3 * X + k)
-        X = X + rng.normal(scale=0.1 * band.margin, size=X.shape)
-        before = band.centres_queried
-        assert band.refresh(X)
-        asked = band.centres_queried - before
-        assert asked < first  # the bounds settled some centres without a query
-        _, fresh, _ = _band_pair(V, F, V * 1.1)
-        fresh.refresh(X, force=True)
-        np.testing.assert_array_equal(band.Q, fresh.Q)
-        np.testing.assert_array_equal(band.weights, fresh.weights)
-
-
-def test_known_queries_give_the_full_evaluation(lumpy_sphere):
-    """``SDFEnergy.evaluate(X, known)`` with the answers of any subset of points equals the
-    evaluation without them."""
-    from morphmodes_vol.energy import KnownQueries
-
-    V, F = lumpy_sphere
-    full, _, _ = _band_pair(V, F, V * 1.1, resolution=16)
-    X = V * [1.05, 1.0, 0.97]
-    want = full.evaluate(X)
-    mask = np.random.default_rng(0).random(full.Q.shape[0]) < 0.6
-    known = KnownQueries(mask=mask, value=full.last_value[mask], faces=want.closest_faces[mask],
-                         barycentrics=want.barycentrics[mask], normal=want.normal[mask])
-    before = full.points_queried
-    got = full.evaluate(X, known)
-    assert full.points_queried - before == int((~mask).sum())
-    assert got.energy == want.energy
-    np.testing.assert_array_equal(got.gradient, want.gradient)
-    with pytest.raises(ValueError, match="mask"):
-        full.evaluate(X, KnownQueries(mask=mask[:5], value=known.value, faces=known.faces,
-                                      barycentrics=known.barycentrics, normal=known.normal))
+    V, F = capsule(height=1.0, radius=0.3, count=(14, 14))
+    target = affine(V, np.diag([1.1, 0.95, 1.0]), [0.03, 0.0, 0.0])
+    options = mm.RegistrationOptions(grid=32, quadrature="band")
+    closed = mm.Registration((V, F), (target, F), options)
+    assert closed.confidence is None and not closed.runs_on_full_grid()
+    band = closed.energy().weights
+    assert band.size < 0.95 * closed.Q.shape[0]
+    assert band.sum() == pytest.approx(closed.Q.shape[0] * closed.quadrature.cell_volume)
+    Tp, Fp = partial_view(target, F)
+    opened = mm.Registration((V, F), (Tp, Fp), options)
+    assert opened.confidence is not None and opened.runs_on_full_grid()
+    np.testing.assert_array_equal(opened.energy().weights, opened.quadrature.cell_volume * opened.c)
 
 
 @pytest.mark.parametrize("quadrature", ["full", "band"])

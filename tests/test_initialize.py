@@ -601,13 +601,11 @@ def test_the_fast_setting_is_the_defaults_on_the_band_without_the_other_orientat
 
 def test_points_queried_counts_every_query_of_the_source(monkeypatch):
     """``metrics["points_queried"]`` is every point sent to the source mesh's closest-point
-    queries (counted here by wrapping the query): the runs' evaluations and band refreshes,
-    the comparisons between runs and the alignment's source field; ``full_grid_equivalents``
+    queries (counted here by wrapping the query): the runs' evaluations, the comparisons between runs and the alignment's source field; ``full_grid_equivalents``
     is that over the grid's nodes. With the paper's settings every evaluation is one full
     grid and nothing else queries the source."""
     import trimesh
 
-    import morphmodes_vol.quadrature as quadrature
     import morphmodes_vol.sdf.source as source
 
     X, F = asymmetric_blob()
@@ -623,7 +621,6 @@ def test_points_queried_counts_every_query_of_the_source(monkeypatch):
         return query(V, F_, Q, scene=scene)
 
     monkeypatch.setattr(source, "closest_points", counting)
-    monkeypatch.setattr(quadrature, "closest_points", counting)
 
     reg = mm.Registration((X, F), (Y, FY), mm.RegistrationOptions(grid=48, modes=3))
     nodes = reg.Q.shape[0]

@@ -49,11 +49,9 @@ def test_recovers_smooth_bend_and_energy_never_increases():
     m = result.metrics
     assert m["ground_truth_error"] <= m["identity_error"] / 3
     assert m["final_sdf_rms"] < 0.2 * m["initial_sdf_rms"]
-    # accepted steps never increase E (except across a refresh of the band quadrature)
+    # accepted steps never increase E (the quadrature is set once, by the target)
     steps = np.diff(np.asarray(result.history.energy))
-    same_quadrature = np.setdiff1d(np.arange(steps.size), result.history.refreshes)
-    assert same_quadrature.size > steps.size // 2
-    assert np.all(steps[same_quadrature] <= 0)
+    assert steps.size > 10 and np.all(steps <= 0)
     assert len(result.history.stage_starts) == result.modes == 10
     # inputs untouched
     np.testing.assert_array_equal(V, V_in)

@@ -87,13 +87,6 @@ class OptimizationHistory:
         the paper's donkey-to-horse figure); kept in memory, not in ``to_dict``.
     evaluations : int
         Number of source-SDF evaluations.
-    partial_evaluations : int
-        Of those, the evaluations after a band refresh that queried only the points the new
-        quadrature does not share with the last one (:class:`morphmodes_vol.quadrature.BandEnergy`).
-    refreshes : list of int
-        Where an adaptive quadrature was recomputed: after ``energy[r]``, so
-        ``energy[r + 1]`` is on a new quadrature and need not be below ``energy[r]``. Each
-        refresh costs one extra evaluation at the same state (:mod:`morphmodes_vol.quadrature`).
     """
 
     energy: list = field(default_factory=list)
@@ -105,8 +98,6 @@ class OptimizationHistory:
     stage_evaluations: list = field(default_factory=list)
     stage_coefficients: list = field(default_factory=list)
     evaluations: int = 0
-    partial_evaluations: int = 0
-    refreshes: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return {
@@ -118,8 +109,6 @@ class OptimizationHistory:
             "stage_seconds": [float(t) for t in self.stage_seconds],
             "stage_evaluations": [int(k) for k in self.stage_evaluations],
             "evaluations": int(self.evaluations),
-            "partial_evaluations": int(self.partial_evaluations),
-            "refreshes": [int(r) for r in self.refreshes],
         }
 
 
@@ -467,15 +456,7 @@ class AdaptiveRun:
             if self.iteration >= options.max_iterations:
                 end = "max_iterations"
                 break
-            X = basis.deform(T)
-            if energy.refresh(X):  # adaptive quadrature moved: same state, new quadrature
-                refreshed = _evaluate_finite(energy, X)
-                if refreshed is None:
-                    end = "fault"
-                    break
-                current = refreshed
-                history.refreshes.append(len(history.energy) - 1)
-            out = stepper.step(T, current, X)
+            out = stepper.step(T, current, basis.deform(T))
             if out.end is not None:
                 end = out.end
                 break
@@ -515,7 +496,6 @@ class AdaptiveRun:
         """The run's outcome so far (complete once :attr:`done`)."""
         history = self.history
         history.evaluations = self.energy.evaluations
-        history.partial_evaluations = int(getattr(self.energy, "partial_evaluations", 0))
         return AdaptiveResult(
             T=self.T,
             vertices=self.basis.deform(self.T),
