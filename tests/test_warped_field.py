@@ -472,8 +472,9 @@ def test_field_only_options_and_the_fastest_flag():
     # the defaults without the runs, the ICP start, the other orientations and the hops, on
     # a narrower band quadrature, with earlier pruning and fewer refined orientations
     assert fastest.replace(field_only=False, warped_candidates=True, warped_hops=1,
-                           warped_descriptors=True, quadrature="full", band_cells=2.0,
-                           warped_prune_modes=8, init_candidates=6) == mm.RegistrationOptions()
+                           warped_descriptors=True, quadrature="full", band_cells=4.0,
+                           confidence_band_cells=2.0, warped_prune_modes=8,
+                           init_candidates=6) == mm.RegistrationOptions()
 
 
 @pytest.mark.realdata
