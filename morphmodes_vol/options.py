@@ -61,7 +61,7 @@ class RegistrationOptions:
     quadrature : {"full", "band"}
         ``"full"``: every grid node (Eq. 3). ``"band"``: every node within ``band_cells``
         spacings of the target's surface and one per block of ``block_factor^3`` nodes
-        elsewhere, weighted by the block's volume; set by the target alone, once
+        elsewhere, weighted by the block's volume; set by the target alone, never refreshed
         (:mod:`morphmodes_vol.quadrature`, docs/decisions/0021); an open target (a partial
         scan) keeps every node. Runs are compared on every node either way.
     band_cells : float
@@ -408,8 +408,8 @@ _CHECKS = {
     "grid": (_int(4, 1024), "an integer in [4, 1024]"),
     "target_grid": (_optional(_int(4, 1024)), "None or an integer in [4, 1024]"),
     "quadrature": (_one_of(QUADRATURES), f"one of {QUADRATURES}"),
-    "band_cells": _POSITIVE, "confidence_band_cells": _POSITIVE, "block_factor": (_int(1, 16), "an integer in [1, 16]"),
-    "padding": (_real(0, 2), "a float in [0, 2]"),
+    "band_cells": _POSITIVE, "confidence_band_cells": _POSITIVE,
+    "block_factor": (_int(1, 16), "an integer in [1, 16]"), "padding": (_real(0, 2), "a float in [0, 2]"),
     "modes": (_int(1, 500), "an integer in [1, 500]"), "initial_modes": _COUNT,
     "stall_start": _POSITIVE, "stall_end": _POSITIVE,
     "max_iterations_per_stage": _COUNT, "max_iterations": _COUNT, "max_step": _POSITIVE,

@@ -15,8 +15,9 @@ quadrature keeps the full grid near the target's surface and one point per block
   block contributes its centre with the weight of all its nodes, ``count * h^3`` (the
   midpoint rule on the block).
 
-The quadrature depends on the target alone: it is built once and is the same for every
-run, every start and every copy of the source, so the runs' energies compare directly and
+The quadrature depends on the target alone and is never refreshed: every evaluator builds
+the same points (a few milliseconds) for every run, every start and every copy of the
+source, so the runs' energies compare directly and
 an input moved by a rounding cannot move a node between the fine and the far set
 (docs/decisions/0021). Where the registration ends, the source lies on the target, inside
 the band; on an open target (a partial scan) its unseen side does not, and the

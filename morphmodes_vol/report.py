@@ -11,7 +11,7 @@ import numpy as np
 
 from .landmarks import landmark_rms
 from .mesh import bbox_diagonal
-from .runs import StartRun, points_queried
+from .runs import StartRun
 from .sdf import closest_points
 
 if TYPE_CHECKING:
@@ -118,7 +118,7 @@ def cost_metrics(reg: "Registration", o: "Outcome", compared) -> dict:
     queried = (sum(r.points_queried for r in runs) + int(compared[1])
                + int(o.init_summary.get("init_field_nodes", 0)) + rm.get("points_queried", 0)
                + (o.warped_field.nodes_queried if o.warped_field is not None else 0)
-               + (points_queried(o.rest_evaluator) if o.rest_evaluator is not None else 0))
+               + (o.rest_evaluator.points_queried if o.rest_evaluator is not None else 0))
     m["points_queried"] = queried
     m["full_grid_equivalents"] = queried / reg.Q.shape[0]
     return m

@@ -80,17 +80,11 @@ def rms(D: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum(D**2, axis=1))))
 
 
-def points_queried(energy) -> int:
-    """Points an evaluator (:meth:`Registration.energy` or :meth:`coarse_energy`) sent to the
-    source mesh's closest-point queries."""
-    return int(energy.points_queried)
-
-
 def comparison_counters(evaluators) -> tuple[int, int, float]:
     """Evaluations, points queried and seconds of the comparison objectives' evaluators
     (:meth:`Registration._cached`), summed; ``run`` reports the difference it made."""
     evaluators = list(evaluators)
-    return (sum(e.evaluations for e in evaluators), sum(points_queried(e) for e in evaluators),
+    return (sum(e.evaluations for e in evaluators), sum(e.points_queried for e in evaluators),
             sum(e.seconds for e in evaluators))
 
 
@@ -164,7 +158,7 @@ class StartRunner:
         self._state_of(r)  # the strain at the run's last state
         r.result = r.run.result()
         r.sdf_seconds = r.energy_term.seconds
-        r.points_queried = points_queried(r.energy_term)
+        r.points_queried = r.energy_term.points_queried
         if r.stopped is None and not judge:
             r.energy, r.judged = float(r.result.final.energy), r.run.stage
             r.energy_grid = "fine" if self.reg.runs_on_full_grid() and r.objective is None else "own"
