@@ -98,8 +98,8 @@ class SDFEnergy:
         Target signed distance at ``Q``.
     weight : float or (k,) float
         Quadrature weight of every point (``h^3`` on a regular grid).
-    sign : {"raycast", "winding"}
-        Inside test of the deformed source.
+    sign : {"raycast", "winding", "unsigned"}
+        Inside test of the deformed source; ``"unsigned"``: none (``g`` unsigned too).
     samples : int
         Rays of the ray-parity inside test.
 

@@ -536,9 +536,15 @@ def source_field(X0: np.ndarray, F: np.ndarray, Q: np.ndarray, spacing: float, c
 def _volume_frames(X0, F, Q, g, kind: str, sign: str):
     """The volume centroids of source and target (from the coarse nodes inside each), the
     candidate rotations between their principal axes and, for a similarity, the scale of
-    their volumes' ratio."""
-    inside_t = Q[g < 0]
-    inside_s = Q[inside(X0, F, Q, sign)]
+    their volumes' ratio. An unsigned source (an open surface) has no inside: the nodes
+    within a spacing of each surface stand in for it."""
+    if sign == "unsigned":
+        h = float(np.min(np.diff(np.unique(Q[:, 0]))))
+        inside_t = Q[g < h]
+        inside_s = Q[signed_distance(X0, F, Q, sign="unsigned").value < h]
+    else:
+        inside_t = Q[g < 0]
+        inside_s = Q[inside(X0, F, Q, sign)]
     if len(inside_t) < 4 or len(inside_s) < 4:
         # a shape thinner than the coarse grid: fall back to its vertices' moments
         log.info("coarse initialization grid sees fewer than 4 nodes inside a shape; "
@@ -638,7 +644,7 @@ def align(
         Candidates refined after screening.
     iterations : int
         Levenberg-Marquardt steps per refined candidate.
-    sign : {"raycast", "winding"}
+    sign : {"raycast", "winding", "unsigned"}
         Inside test of the source.
     progress : callable, optional
         Receives a short message per refined candidate.

@@ -33,7 +33,7 @@ __all__ = ["RegistrationOptions", "parse_setting", "preset_table", "preset_descr
 Preconditioner = Literal["block", "none"]
 PRECONDITIONERS = typing.get_args(Preconditioner)
 SIGN_METHODS = typing.get_args(SignMethod)
-SourceSign = Literal["auto", "raycast", "winding"]
+SourceSign = Literal["auto", "raycast", "winding", "unsigned"]
 SOURCE_SIGNS = typing.get_args(SourceSign)
 Optimizer = Literal["lm", "paper"]
 OPTIMIZERS = typing.get_args(Optimizer)
@@ -111,9 +111,11 @@ class RegistrationOptions:
         ``"block"`` scales each mode's block of the gradient by the inverse of its 4x4 Gram
         matrix ``[X0 1]^T diag(w_j)^2 [X0 1]`` (our deviation from the paper); ``"none"`` is
         the paper's plain step.
-    source_sign : {"auto", "raycast", "winding"}
+    source_sign : {"auto", "raycast", "winding", "unsigned"}
         Inside test of the deformed source: ray parity (exact for closed sources), the
         generalized winding number (robust to holes), or ``"auto"``: by the source's topology.
+        ``"unsigned"``: no inside, both fields matched as unsigned distances, for an open
+        source (a mask, a sheet) that a scan may show from either side (docs/decisions/0023).
     occupancy_samples : int
         Rays cast (odd; majority vote) by the ray-parity test.
     seed : int

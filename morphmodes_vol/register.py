@@ -349,7 +349,13 @@ class Registration:
         return SDFEnergy(self.source_sdf_faces, Q, g, weight, sign=o.source_sign, samples=o.occupancy_samples)
 
     def sample_target(self, points: np.ndarray) -> np.ndarray:
-        """Target SDF at ``points (k, 3)`` of the pair's normalized frame, ``(k,)``."""
+        """Target SDF at ``points (k, 3)`` of the pair's normalized frame, ``(k,)``; its
+        absolute value when the source's is unsigned (``source_sign="unsigned"``), so that
+        every stage compares like with like."""
+        g = self._target_values(points)
+        return np.abs(g) if self.options.source_sign == "unsigned" else g
+
+    def _target_values(self, points: np.ndarray) -> np.ndarray:
         if isinstance(self.target_sdf, TargetField):  # a pipeline's cached field
             return self.target_sdf.sample(points, self.normalization)
         if self.target_is_sdf:

@@ -128,7 +128,7 @@ class WarpedRestField:
         ``evaluate(X)`` and optionally ``normal_matrix(basis, m, X)``
         (:class:`~morphmodes_vol.energy.AddedTerm`), built around a :class:`ZeroEnergy` so it
         holds nothing else.
-    sign : {"raycast", "winding"}
+    sign : {"raycast", "winding", "unsigned"}
     samples : int
         Occupancy rays per node (``sign="raycast"``).
     descriptors : (source, sample) or None

@@ -477,3 +477,21 @@ def test_eigensolver_failure_is_a_clear_error(monkeypatch):
     V, F = icosphere(3)  # 642 vertices: the sparse solver
     with pytest.raises(MeshValidationError, match="source: the skinning eigenproblem could not be solved"):
         mm.register((V, F), (V * 1.1, F), grid=8, modes=2)
+
+
+def test_an_open_source_registers_unsigned_onto_either_side_of_its_target():
+    # a cap (an open surface: a mask, a sheet) onto a stretched copy whose triangles face
+    # the other way, as a scan seen from behind delivers it: matched unsigned it lands on the
+    # copy whichever way the copy faces; with the winding number's sign (the default for an
+    # open source) it turns over
+    V, F = icosphere(3)
+    used, Fc = np.unique(F[V[F].mean(axis=1)[:, 2] > -0.2], return_inverse=True)
+    Vc, Fc = V[used], Fc.reshape(-1, 3)
+    target = Vc * [1.15, 1.0, 0.9] + [0.05, 0, 0]
+    opts = dict(grid=16, modes=4, max_iterations=40)
+    for faces in (Fc, Fc[:, ::-1]):
+        r = mm.register((Vc, Fc), (target, faces), ground_truth=target, source_sign="unsigned", **opts)
+        assert r.metrics["ground_truth_error"] < 0.1 * r.metrics["identity_error"]
+    r = mm.register((Vc, Fc), (target, Fc[:, ::-1]), ground_truth=target, **opts)
+    assert r.options.source_sign == "winding"
+    assert r.metrics["ground_truth_error"] > r.metrics["identity_error"]

@@ -71,6 +71,30 @@ def test_vertex_gradient_matches_finite_differences(lumpy_sphere, rng):
         assert an == pytest.approx(fd, rel=2e-3, abs=1e-6 * np.abs(ev.gradient).sum())
 
 
+def test_unsigned_gradient_matches_finite_differences(rng):
+    # an open cap matched by unsigned distances (source_sign="unsigned"): |f| against |g|;
+    # an ellipsoid's cap, so that no node lies on the medial axis of a sphere's rim
+    V, F = icosphere(3)
+    V = V * [1.3, 0.9, 0.8]
+    used, cap = np.unique(F[V[F].mean(axis=1)[:, 2] > 0.1], return_inverse=True)
+    V, cap = V[used], cap.reshape(-1, 3)
+    target = V * [1.15, 0.9, 1.0] + [0.05, 0.0, -0.03]
+    grid = Grid.covering(target.min(0), target.max(0), 11, padding=0.3)
+    Q = grid.points() + np.array([0.0123, -0.0071, 0.0047])
+    g = signed_distance(target, cap[:, ::-1], Q, sign="unsigned").value  # either side: the same
+    np.testing.assert_allclose(g, signed_distance(target, cap, Q, sign="unsigned").value, atol=1e-12)
+    E = SDFEnergy(cap, Q, g, grid.cell_volume, sign="unsigned")
+    ev = E.evaluate(V)
+    assert ev.energy > 0 and E.evaluate(target).energy < 1e-20
+    h = 1e-7  # a rim's closest-feature switches lie closer together than a closed surface's
+    for _ in range(6):
+        D = rng.standard_normal(V.shape)
+        D /= np.linalg.norm(D)
+        fd = (E.evaluate(V + h * D).energy - E.evaluate(V - h * D).energy) / (2 * h)
+        an = float(np.sum(ev.gradient * D))
+        assert an == pytest.approx(fd, rel=2e-3, abs=1e-6 * np.abs(ev.gradient).sum())
+
+
 def test_subspace_gradient_matches_finite_differences(lumpy_sphere, rng):
     V, F = lumpy_sphere
     target = V * [0.9, 1.1, 1.05]

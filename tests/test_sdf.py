@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from morphmodes_vol.primitives import icosphere
+from morphmodes_vol.sdf.source import resolve_sign
 from morphmodes_vol.sdf import (
     DenseTargetSDF,
     Grid,
@@ -96,3 +97,18 @@ def test_signed_distance_sign_and_normal():
     assert inside(V, F, Q, "winding").tolist() == [True, False, False]
     with pytest.raises(ValueError):
         inside(V, F, Q, "parity")
+
+
+def test_unsigned_distance_of_an_open_cap_by_hand():
+    # the upper half of a sphere: no inside; the distance is the same seen from either side
+    # and whichever way its triangles turn, and its gradient points away from the surface
+    V, F = icosphere(3)
+    cap = F[V[F].mean(axis=1)[:, 2] > 0]
+    Q = np.array([[0.0, 0, 0.5], [0.0, 0, 1.5], [0.0, 0, -1.0]])
+    for faces in (cap, cap[:, ::-1]):
+        q = signed_distance(V, faces, Q, sign="unsigned")
+        np.testing.assert_allclose(q.value, [0.5, 0.5, np.sqrt(2)], atol=5e-3)  # the last to the rim
+        np.testing.assert_allclose(q.normal[:2], [[0, 0, -1], [0, 0, 1]], atol=0.1)  # facets
+    assert resolve_sign(cap, "unsigned") == "unsigned"
+    with pytest.raises(ValueError, match="inside test"):
+        inside(V, cap, Q, "unsigned")

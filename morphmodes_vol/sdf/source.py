@@ -5,7 +5,8 @@ The closest triangle is found by Open3D's BVH (``RaycastingScene.compute_closest
 float32); the closest point on that triangle is then recomputed in float64 so the distance
 is a smooth function of the vertex positions between closest-feature switches. The sign
 comes from an inside test: ray-parity occupancy (``compute_occupancy``), negative inside,
-or the generalized winding number. Ray parity does not see the orientation of the
+or the generalized winding number; ``"unsigned"`` keeps the distance unsigned (an open
+surface has no inside, and a scan may see either of its sides: docs/decisions/0023). Ray parity does not see the orientation of the
 triangles; with ``oriented=True`` the sign of the enclosed volume (:func:`signed_volume`)
 supplies it, so that a surface turned inside out (a deformation through a reflection) has
 its inside outside (docs/decisions/0017).
@@ -24,7 +25,7 @@ from .closest_point import closest_point_barycentrics
 __all__ = ["ClosestPoints", "SignedDistanceQuery", "closest_points", "signed_distance", "signed_volume",
            "is_closed", "resolve_sign"]
 
-SignMethod = Literal["raycast", "winding"]
+SignMethod = Literal["raycast", "winding", "unsigned"]
 
 
 @dataclass(frozen=True)
@@ -114,7 +115,7 @@ def inside(V: np.ndarray, F: np.ndarray, Q: np.ndarray, method: SignMethod = "ra
             np.ascontiguousarray(Q, dtype=np.float64),
         )
         return np.asarray(w) > 0.5
-    raise OptionError(f"sign method {method!r}: expected one of ('raycast', 'winding')")
+    raise OptionError(f"inside test {method!r}: expected one of ('raycast', 'winding')")
 
 
 @dataclass(frozen=True)
@@ -153,7 +154,13 @@ def is_closed(F) -> bool:
 
 def resolve_sign(F, sign: str) -> SignMethod:
     """``sign``, with ``"auto"`` made ray parity for a closed mesh (:func:`is_closed`) and
-    the generalized winding number otherwise."""
+    the generalized winding number otherwise.
+
+    Examples
+    --------
+    >>> resolve_sign([[0, 1, 2], [0, 2, 3], [0, 3, 1], [1, 3, 2]], "auto"), resolve_sign([[0, 1, 2]], "auto")
+    ('raycast', 'winding')
+    """
     if sign == "auto":
         return "raycast" if is_closed(F) else "winding"
     return sign
@@ -179,7 +186,8 @@ def signed_volume(V, F) -> float:
 def signed_distance(V: np.ndarray, F: np.ndarray, Q: np.ndarray, sign: SignMethod = "raycast",
                     samples: int = 1, oriented: bool = False) -> SignedDistanceQuery:
     """Signed distance of the mesh ``(V, F)`` at ``Q (k, 3)``, negative inside; ``sign`` as
-    :func:`inside` decides it, or ``"auto"`` (:func:`resolve_sign`).
+    :func:`inside` decides it, ``"unsigned"`` (the distance, ``>= 0``), or ``"auto"``
+    (:func:`resolve_sign`).
 
     ``oriented``: the orientation of the triangles decides which side is inside. Ray parity
     does not see it; with ``oriented`` its sign is flipped when the enclosed volume
@@ -202,7 +210,10 @@ def signed_distance(V: np.ndarray, F: np.ndarray, Q: np.ndarray, sign: SignMetho
     sign = resolve_sign(F, sign)
     scene = _scene(V, F) if sign == "raycast" else None
     cp = closest_points(V, F, Q, scene=scene)
-    sgn = np.where(inside(V, F, Q, sign, scene=scene, samples=samples), -1.0, 1.0)
+    if sign == "unsigned":
+        sgn = np.ones(len(Q))
+    else:
+        sgn = np.where(inside(V, F, Q, sign, scene=scene, samples=samples), -1.0, 1.0)
     if oriented and sign == "raycast" and signed_volume(V, F) < 0:
         sgn = -sgn  # inside out: the parity's inside is the surface's outside
     diff = Q - cp.points
