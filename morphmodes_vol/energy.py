@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .sdf.source import SignMethod, signed_distance
+from .sdf.source import DistanceSign, signed_distance
 
 __all__ = ["SDFEnergy", "EnergyEvaluation", "AddedTerm"]
 
@@ -116,7 +116,7 @@ class SDFEnergy:
     True
     """
 
-    def __init__(self, F, Q, g, weight: float, sign: SignMethod = "raycast", samples: int = 1):
+    def __init__(self, F, Q, g, weight: float, sign: DistanceSign = "raycast", samples: int = 1):
         self.F = np.ascontiguousarray(F, dtype=np.int64)
         self.Q = np.ascontiguousarray(Q, dtype=np.float64)
         self.g = np.ascontiguousarray(g, dtype=np.float64)
@@ -128,7 +128,7 @@ class SDFEnergy:
         if w.shape != (self.Q.shape[0],) or not np.all(np.isfinite(w)) or np.any(w < 0):
             raise ValueError(f"weight must be a non-negative scalar or ({self.Q.shape[0]},) array")
         self.weights = w
-        self.sign: SignMethod = sign
+        self.sign: DistanceSign = sign
         self.samples = int(samples)
         self.evaluations = 0
         self.points_queried = 0

@@ -3,6 +3,8 @@
 import numpy as np
 import pytest
 
+from morphmodes_vol.errors import OptionError
+from morphmodes_vol.options import RegistrationOptions
 from morphmodes_vol.primitives import icosphere
 from morphmodes_vol.sdf.source import resolve_sign
 from morphmodes_vol.sdf import (
@@ -112,3 +114,7 @@ def test_unsigned_distance_of_an_open_cap_by_hand():
     assert resolve_sign(cap, "unsigned") == "unsigned"
     with pytest.raises(ValueError, match="inside test"):
         inside(V, cap, Q, "unsigned")
+    # a source may be matched unsigned; a target's field is always signed
+    assert RegistrationOptions(source_sign="unsigned").source_sign == "unsigned"
+    with pytest.raises(OptionError, match="target_sign"):
+        RegistrationOptions(target_sign="unsigned")

@@ -25,7 +25,10 @@ from .closest_point import closest_point_barycentrics
 __all__ = ["ClosestPoints", "SignedDistanceQuery", "closest_points", "signed_distance", "signed_volume",
            "is_closed", "resolve_sign"]
 
-SignMethod = Literal["raycast", "winding", "unsigned"]
+SignMethod = Literal["raycast", "winding"]
+"""An inside test: what a target's field and a closed or holed source's are signed by."""
+DistanceSign = Literal["raycast", "winding", "unsigned"]
+"""How :func:`signed_distance` signs: an inside test, or none (an open source, decision 0023)."""
 
 
 @dataclass(frozen=True)
@@ -152,7 +155,7 @@ def is_closed(F) -> bool:
     return bool(np.all(counts == 2))
 
 
-def resolve_sign(F, sign: str) -> SignMethod:
+def resolve_sign(F, sign: str) -> DistanceSign:
     """``sign``, with ``"auto"`` made ray parity for a closed mesh (:func:`is_closed`) and
     the generalized winding number otherwise.
 
@@ -183,7 +186,7 @@ def signed_volume(V, F) -> float:
     return float(np.einsum("ij,ij->", V[F[:, 0]], np.cross(V[F[:, 1]], V[F[:, 2]]))) / 6.0
 
 
-def signed_distance(V: np.ndarray, F: np.ndarray, Q: np.ndarray, sign: SignMethod = "raycast",
+def signed_distance(V: np.ndarray, F: np.ndarray, Q: np.ndarray, sign: DistanceSign = "raycast",
                     samples: int = 1, oriented: bool = False) -> SignedDistanceQuery:
     """Signed distance of the mesh ``(V, F)`` at ``Q (k, 3)``, negative inside; ``sign`` as
     :func:`inside` decides it, ``"unsigned"`` (the distance, ``>= 0``), or ``"auto"``
