@@ -6,10 +6,10 @@ float32); the closest point on that triangle is then recomputed in float64 so th
 is a smooth function of the vertex positions between closest-feature switches. The sign
 comes from an inside test: ray-parity occupancy (``compute_occupancy``), negative inside,
 or the generalized winding number; ``"unsigned"`` keeps the distance unsigned (an open
-surface has no inside, and a scan may see either of its sides: docs/decisions/0023). Ray parity does not see the orientation of the
-triangles; with ``oriented=True`` the sign of the enclosed volume (:func:`signed_volume`)
-supplies it, so that a surface turned inside out (a deformation through a reflection) has
-its inside outside (docs/decisions/0017).
+surface has no inside, and a scan may see either of its sides: docs/decisions/0023). Ray
+parity does not see the orientation of the triangles; with ``oriented=True`` the sign of
+the enclosed volume (:func:`signed_volume`) supplies it, so that a surface turned inside
+out (a deformation through a reflection) has its inside outside (docs/decisions/0017).
 """
 
 from __future__ import annotations
