@@ -42,6 +42,19 @@ def test_estimated_normals_are_the_sphere_s_and_point_outward():
     np.testing.assert_array_equal(oriented_normals(PointCloud(P, P)), P)
 
 
+def test_a_dense_scan_s_normals_follow_an_oriented_subset(monkeypatch):
+    """Synthetic recovery: 12k points of a bent capsule (not convex) without normals, the
+    orientation graph capped at 1500 of them: the normals of all 12k point outward, as the
+    surface's own do."""
+    import morphmodes_vol.pointcloud as pointcloud
+
+    V, F = capsule(count=(24, 24))
+    P, N_true = sampled_points(bend(V, np.pi / 2), F, 12000, seed=4)
+    monkeypatch.setattr(pointcloud, "_ORIENT_POINTS", 1500)
+    N = oriented_normals(PointCloud(P))
+    assert np.mean(np.sum(N * N_true, axis=1) > 0.9) > 0.99
+
+
 @pytest.mark.parametrize("method", ["winding", "poisson"])
 def test_the_sdf_of_oriented_points_of_a_sphere(method):
     """The field of 20k noiseless points of the unit sphere is its distance, ``|q| - 1``, to
